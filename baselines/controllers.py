@@ -1,0 +1,105 @@
+"""The paper's laws and observer packaged as blf_gym plug-ins, with their gains (Table 2).
+
+``bc``, ``lesobc``, ``proposed`` and ``leso`` are the factories registered under the entry-point
+groups ``blf_gym.controllers`` and ``blf_gym.observers``; keyword arguments override gains, e.g.
+``proposed(K2=(45, 45, 15), barrier_clip=0.9)``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from blf_gym.controller import InnerController, Observer
+from blf_gym.params import ArmParams
+
+from .laws import bc_law, lesobc_law, proposed_law
+from .leso import leso_rhs
+
+__all__ = ["ControllerGains", "ObserverGains", "bc", "lesobc", "proposed", "leso"]
+
+
+def _vector(name: str, value: Any, n: int) -> tuple[float, ...]:
+    arr = np.atleast_1d(np.asarray(value, dtype=float))
+    if arr.shape != (n,):
+        raise ValueError(f"ControllerGains.{name} must have {n} entries (one per joint), got shape {arr.shape}")
+    if not np.all(np.isfinite(arr) & (arr > 0)):
+        raise ValueError(f"ControllerGains.{name} entries must be finite and > 0, got {arr.tolist()}")
+    return tuple(float(v) for v in arr)
+
+
+@dataclass(frozen=True)
+class ControllerGains:
+    """Backstepping gains (paper Table 2) and the barrier guard."""
+
+    K1: tuple[float, ...] = (20.0, 20.0, 15.0)
+    """Diagonal of K1 = 10 diag(2, 2, 1.5), 1/s (each > 0)."""
+    K2: tuple[float, ...] = (45.0, 45.0, 15.0)
+    """Diagonal of K2 = 30 diag(1.5, 1.5, 0.5), N m s/rad (each > 0)."""
+    barrier_clip: float = 0.95
+    """rho in (0, 1): the barrier term is evaluated with |e1| <= rho x bound. 0.95 keeps the
+    closed loop integrable at h = 0.1 ms (SPEC section 5); raise it only with a smaller step."""
+    nominal: ArmParams = field(default_factory=ArmParams)
+    """The controller's model of the arm (paper Table 1)."""
+
+    def __post_init__(self) -> None:
+        n = self.nominal.n_links
+        object.__setattr__(self, "K1", _vector("K1", self.K1, n))
+        object.__setattr__(self, "K2", _vector("K2", self.K2, n))
+        if not (math.isfinite(self.barrier_clip) and 0.0 < self.barrier_clip < 1.0):
+            raise ValueError(f"ControllerGains.barrier_clip must be in (0, 1), got {self.barrier_clip!r}")
+
+    def pack(self) -> np.ndarray:
+        return np.array([*self.K1, *self.K2, self.barrier_clip], dtype=np.float64)
+
+
+@dataclass(frozen=True)
+class ObserverGains:
+    """LESO bandwidth (paper Table 2)."""
+
+    k0: float = 200.0
+    """Observer bandwidth: all three poles per joint at -k0, 1/s (> 0)."""
+    nominal: ArmParams = field(default_factory=ArmParams)
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.k0) and self.k0 > 0):
+            raise ValueError(f"ObserverGains.k0 must be a finite number > 0, got {self.k0!r}")
+
+
+def _gains(kwargs: dict[str, Any]) -> ControllerGains:
+    valid = {f.name for f in fields(ControllerGains)}
+    unknown = set(kwargs) - valid
+    if unknown:
+        raise ValueError(f"unknown controller gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
+    return ControllerGains(**kwargs)
+
+
+def bc(**kwargs: Any) -> InnerController:
+    """Backstepping control (full state: reads the true velocity)."""
+    g = _gains(kwargs)
+    return InnerController("bc", bc_law, g.pack(), g.nominal, full_state=True)
+
+
+def lesobc(**kwargs: Any) -> InnerController:
+    """Backstepping with the LESO's velocity and disturbance estimates."""
+    g = _gains(kwargs)
+    return InnerController("lesobc", lesobc_law, g.pack(), g.nominal)
+
+
+def proposed(**kwargs: Any) -> InnerController:
+    """The paper's LESO + barrier-Lyapunov law."""
+    g = _gains(kwargs)
+    return InnerController("proposed", proposed_law, g.pack(), g.nominal)
+
+
+def leso(**kwargs: Any) -> Observer:
+    """The linear extended state observer, x_hat(0) = [q(0), 0, 0]."""
+    valid = {f.name for f in fields(ObserverGains)}
+    unknown = set(kwargs) - valid
+    if unknown:
+        raise ValueError(f"unknown observer gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
+    g = ObserverGains(**kwargs)
+    return Observer("leso", leso_rhs, np.array([g.k0]), g.nominal)

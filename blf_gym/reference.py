@@ -1,0 +1,128 @@
+"""Joint-space reference of the paper's Section 4.1, with analytic first and second derivatives.
+
+The end effector follows x_d = cx + r cos(w t), y_d = cy + r sin(w t), phi_d constant, with
+w = 2 pi f. Its wrist (end effector minus l3 along phi_d) runs on a circle of radius r around
+c_w = (cx, cy) - l3 (cos phi_d, sin phi_d) that touches the inner workspace boundary |w| = l1 - l2.
+From the law of cosines, |w|^2 = (l1 - l2)^2 + 4 l1 l2 cos^2(q2 / 2), and tangency gives
+
+    cos(q2 / 2) = k cos(theta),  k = sqrt(r |c_w| / (l1 l2)),  theta = (w t - angle(c_w)) / 2,
+
+(k = sqrt(0.1 / 0.21) = 0.690 for the paper) so the **smooth** branch q2 = 2 acos(k cos theta) is
+analytic for all t and folds the elbow through q2 = pi at the instants theta = pi/2 + m pi. The
+**standard** branch keeps q2 in [0, pi] (acos of |k cos theta|): continuous, but its velocity jumps
+at every fold. Then q1 = atan2(w_y, w_x) - atan2(l2 sin q2, l1 + l2 cos q2) and
+q3 = phi_d - q1 - q2.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from .params import Scenario
+
+__all__ = ["reference_into", "joint_reference", "REF_LEN_PER_LINK"]
+
+REF_LEN_PER_LINK = 3
+"""``reference_into`` writes [q_d (n), qd_d (n), qdd_d (n)]."""
+
+
+@njit(cache=True, error_model="numpy")
+def reference_into(t, rp, arm, out):
+    """Write [q_d, qd_d, qdd_d] (9 entries) at time ``t`` into ``out``.
+
+    ``rp`` is :meth:`Scenario.pack_reference`; ``arm`` the packed arm (lengths are read from it).
+    """
+    f = rp[0]
+    rad = rp[3]
+    phi = rp[4]
+    standard = rp[5] > 0.5
+    wcx = rp[6]
+    wcy = rp[7]
+    k = rp[8]
+    cb = rp[9]
+    sb = rp[10]
+    l1 = arm[0]
+    l2 = arm[1]
+    om = 2.0 * np.pi * f
+    nu = 0.5 * om
+    # theta = (om t - beta) / 2 with beta = angle(c_w); om t = 2 theta + beta
+    theta = 0.5 * (om * t - rp[11])
+    ct = np.cos(theta)
+    st = np.sin(theta)
+    c2t = ct * ct - st * st
+    s2t = 2.0 * st * ct
+    c = c2t * cb - s2t * sb  # cos(om t)
+    sn = s2t * cb + c2t * sb  # sin(om t)
+
+    # s = cos(q2 / 2) and its derivatives
+    s = k * ct
+    sd = -k * nu * st
+    sdd = -nu * nu * s
+    if standard and s < 0.0:
+        s, sd, sdd = -s, -sd, -sdd
+    one_m = 1.0 - s * s
+    den = np.sqrt(one_m)
+    q2 = 2.0 * np.arccos(s)
+    q2d = -2.0 * sd / den
+    q2dd = -2.0 * (sdd * one_m + s * sd * sd) / (den * one_m)
+
+    # wrist position angle alpha = atan2(w_y, w_x)
+    wx = wcx + rad * c
+    wy = wcy + rad * sn
+    wxd = -rad * om * sn
+    wyd = rad * om * c
+    wxdd = -om * om * rad * c
+    wydd = -om * om * rad * sn
+    dd = wx * wx + wy * wy
+    cr = wx * wyd - wy * wxd
+    crd = wx * wydd - wy * wxdd
+    ddd = 2.0 * (wx * wxd + wy * wyd)
+    ald = cr / dd
+    aldd = (crd * dd - cr * ddd) / (dd * dd)
+
+    # elbow offset angle beta = atan2(l2 sin q2, l1 + l2 cos q2)
+    c2 = 2.0 * s * s - 1.0  # cos(q2) = cos(2 acos s)
+    s2 = 2.0 * s * den  # sin(q2)
+    d2 = l1 * l1 + l2 * l2 + 2.0 * l1 * l2 * c2
+    nn = l2 * (l2 + l1 * c2) / d2
+    nq = l1 * l2 * s2 * (l2 * l2 - l1 * l1) / (d2 * d2)
+    bed = nn * q2d
+    bedd = nn * q2dd + nq * q2d * q2d
+
+    # q1 = alpha - beta with alpha = angle(w). The wrist circle stays within +-90 deg of the
+    # direction of its centre (it lies outside the inner boundary it touches) and beta is within
+    # +-90 deg (l1 > l2), so one atan2 of w rotated by -angle(c_w), then by -beta, is
+    # continuous: q1 = angle(c_w) + atan2(...).
+    wrx = wx * cb + wy * sb
+    wry = wy * cb - wx * sb
+    ex = l1 + l2 * c2
+    ey = l2 * s2
+    q1 = rp[11] + np.arctan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
+    q1d = ald - bed
+    q1dd = aldd - bedd
+    out[0] = q1
+    out[1] = q2
+    out[2] = phi - q1 - q2
+    out[3] = q1d
+    out[4] = q2d
+    out[5] = -q1d - q2d
+    out[6] = q1dd
+    out[7] = q2dd
+    out[8] = -q1dd - q2dd
+
+
+@njit(cache=True, error_model="numpy")
+def _reference_table(ts, rp, arm):
+    out = np.empty((ts.shape[0], 9))
+    for i in range(ts.shape[0]):
+        reference_into(ts[i], rp, arm, out[i])
+    return out
+
+
+def joint_reference(t: np.ndarray | float, scenario: Scenario = Scenario()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(q_d, qd_d, qdd_d), each of shape ``t.shape + (3,)``, in rad, rad/s, rad/s^2."""
+    t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64)).ravel()
+    table = _reference_table(t_arr, scenario.pack_reference(), scenario.arm.pack())
+    shape = np.shape(t) + (3,)
+    return (table[:, 0:3].reshape(shape), table[:, 3:6].reshape(shape), table[:, 6:9].reshape(shape))

@@ -1,0 +1,676 @@
+"""The closed loop: plant + observer + inner controller, integrated by fixed-step ODE3.
+
+One compiled kernel serves everything: the reproduction (one arm, a whole 30 s episode per call),
+the Gymnasium env (one arm, one agent period per call) and the vector env (N arms per call, in
+parallel threads). It is specialised per (controller law, observer) pair by cloning the template
+functions below with the law and observer bound as globals, then compiled by numba with
+``cache=True`` so a warm start loads machine code from disk.
+
+Integration (SPEC section 6): Bogacki-Shampine ODE3, fixed step h, with the law and the observer
+evaluated at every stage. The measured angles (true angles plus optional noise) are held over a
+step. Constraints are checked after every step; trajectories and metrics use the 1 ms grid.
+
+State layout per arm, ``X[b]`` (5n): ``[q, qd, x1_hat, x2_hat, x3_hat]``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import time
+import types
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+from numba import njit, prange
+
+from .bounds import bounds_into
+from .controller import (
+    InnerController,
+    Observer,
+    make_controller,
+    make_observer,
+    model_length,
+    nominal_model_into,
+    work_length,
+)
+from .dynamics import (
+    WORK_PER_LINK,
+    abs_trig_into,
+    cholesky_solve_into,
+    coriolis_times_into,
+    gravity_into,
+    mass_matrix_into,
+    wrench_torque_into,
+)
+from .params import Scenario
+from .reference import reference_into
+from .uncertainty import dead_zone, force_active, friction
+
+__all__ = [
+    "CHANNELS",
+    "ClosedLoop",
+    "Trajectory",
+    "SimulationDiverged",
+    "simulate",
+    "simulate_batch",
+]
+
+# Recorded channels, each an n-vector per 1 ms sample (the time channel repeats t).
+CHANNELS = (
+    "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated",
+    "x3", "x3_hat", "x2_hat", "x1_hat", "y",
+)
+_C = {name: i for i, name in enumerate(CHANNELS)}
+N_CHANNELS = len(CHANNELS)
+
+# Offsets after the arm block (2n+1) in the packed plant vector, see Scenario.pack_plant.
+_VISC, _COUL, _PSI, _HR, _HL, _TR, _TL, _FX, _FY, _MZ, _ONSET, _UMAX, _DIVLIM = range(13)
+
+# status columns
+ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS = range(5)
+N_STATUS = 5
+
+
+@njit(cache=True, error_model="numpy")
+def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
+    """x3 = qdd - F_nom(q, qd) - M_nom^-1 u = M_nom^-1 (M_nom qdd + C_nom qd + G_nom - u)."""
+    n = q.shape[0]
+    trig = work[4 * n : 6 * n]
+    c = work[6 * n : 7 * n]
+    g = work[7 * n : 8 * n]
+    r = work[8 * n : 9 * n]
+    abs_trig_into(q, trig)
+    mass_matrix_into(trig, nominal, M, work)
+    coriolis_times_into(trig, qd, qd, nominal, c, work)
+    gravity_into(trig, nominal, g, work)
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += M[i * n + j] * qdd[j]
+        r[i] = acc + c[i] + g[i] - u[i]
+    cholesky_solve_into(M, r, out, L)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _fixed(w, start, length):
+    """The view w[start:start+length] with a shape LLVM sees as a constant when length is one."""
+    return w[start : start + length].reshape((length,))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _violates(e_or_q, ref, bnd, n):
+    """True if any joint's error q - q_d is outside (-k_b, k_a) (first n entries of ``e_or_q``)."""
+    for i in range(n):
+        e = e_or_q[i] - ref[i]
+        if e >= bnd[0] or e <= -bnd[3]:
+            return True
+    return False
+
+
+@njit(cache=True, error_model="numpy")
+def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, dx, nominal, x3, M, L, work):
+    """Write one 1 ms sample (the channels of CHANNELS) into ``r`` (channels, n)."""
+    n = y.shape[0]
+    _lumped_true(x[:n], x[n : 2 * n], dx[n : 2 * n], u, nominal, x3, M, L, work)
+    for i in range(n):
+        r[0, i] = t
+        r[1, i] = x[i]
+        r[2, i] = x[n + i]
+        r[3, i] = ref[i]
+        r[4, i] = ref[n + i]
+        r[5, i] = x[i] - ref[i]
+        r[6, i] = bnd[0]
+        r[7, i] = bnd[3]
+        r[8, i] = u[i]
+        r[9, i] = hu[i]
+        r[10, i] = ulaw[i]
+        r[11, i] = satf[i]
+        r[12, i] = x3[i]
+        r[13, i] = x[4 * n + i]
+        r[14, i] = x[3 * n + i]
+        r[15, i] = x[2 * n + i]
+        r[16, i] = y[i]
+
+
+def _stage_template(t, x, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref, bnd, ulaw, u, hu,
+                    satf, dx, pw, Mp, Lp, model, wl, wo):
+    """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
+
+    ``_law`` and ``_observer`` are globals bound by :func:`_specialise`.
+    """
+    n = y.shape[0]
+    arm = plant[: 2 * n + 1]
+    o = 2 * n + 1
+    reference_into(t, rp, arm, ref)
+    bounds_into(t, bp, bnd)
+    q = x[:n]
+    qd = x[n : 2 * n]
+    xh = x[2 * n :]
+    nn = n * n
+    # ``model`` (the nominal model at the measured angles y, held over the step) is computed once
+    # per step by the caller. Without measurement noise, y equals q at the first stage, and when
+    # the nominal arm is the true one (the paper's cases) the plant's M and G are the same too.
+    trig = pw[4 * n : 6 * n]
+    same_angles = True
+    for i in range(n):
+        if y[i] != q[i]:
+            same_angles = False
+    if same_angles:
+        for i in range(2 * n):
+            trig[i] = model[nn + n + i]
+    else:
+        abs_trig_into(q, trig)
+    _law(t, y, qd, xh, ref, bnd, nominal, model, lg, ulaw, wl)  # noqa: F821 (bound at specialisation)
+    umax = plant[o + _UMAX]
+    for i in range(n):
+        ui = ulaw[i] + res[i]
+        s = 0.0
+        if ui > umax:
+            ui = umax
+            s = 1.0
+        elif ui < -umax:
+            ui = -umax
+            s = 1.0
+        u[i] = ui
+        satf[i] = s
+        hu[i] = dead_zone(ui, plant[o + _HR], plant[o + _HL], plant[o + _TR], plant[o + _TL])
+    # plant: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
+    c = pw[6 * n : 7 * n]
+    g = pw[7 * n : 8 * n]
+    jf = pw[8 * n : 9 * n]
+    rhs = pw[9 * n : 10 * n]
+    if same_angles and same_arm:
+        for i in range(nn):
+            Mp[i] = model[i]
+        for i in range(n):
+            g[i] = model[nn + i]
+    else:
+        mass_matrix_into(trig, arm, Mp, pw)
+        gravity_into(trig, arm, g, pw)
+    coriolis_times_into(trig, qd, qd, arm, c, pw)
+    if force_active(t, plant[o + _ONSET]) > 0.0:
+        wrench_torque_into(trig, arm, plant[o + _FX : o + _MZ + 1], jf)
+    else:
+        for i in range(n):
+            jf[i] = 0.0
+    for i in range(n):
+        rhs[i] = hu[i] - c[i] - g[i] - jf[i] - friction(qd[i], plant[o + _VISC], plant[o + _COUL],
+                                                       plant[o + _PSI])
+        dx[i] = qd[i]
+    cholesky_solve_into(Mp, rhs, dx[n : 2 * n], Lp)
+    _observer(y, xh, u, nominal, model, og, dx[2 * n :], wo)  # noqa: F821
+
+
+def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
+                      noise, terminate, rec, nrec, status, last, scratch):
+    """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
+
+    Stops an arm early on divergence (state restored to the last finite one) or, when
+    ``terminate``, right after the first step whose end state violates a bound. Records the
+    channels of :data:`CHANNELS` into ``rec[b]`` at every step index divisible by ``sps``.
+    ``scratch`` (N, scratch_length(n)) is per-arm work space. ``_stage`` is a global bound by
+    :func:`_specialise`.
+    """
+    N = X.shape[0]
+    n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
+    has_noise = noise.shape[1] > 0
+    for b in prange(N):
+        nx = 5 * n
+        # Scratch views. The kernel is compiled without NRT: it allocates nothing and views carry
+        # no reference counting (which would otherwise dominate a step's cost). Every view is
+        # given a compile-time-constant shape (n = _N is bound at specialisation), so after
+        # inlining LLVM unrolls the per-joint loops of the law, observer and model.
+        w = scratch[b]
+        K0 = _fixed(w, 0, nx)
+        K1 = _fixed(w, nx, nx)
+        K2 = _fixed(w, 2 * nx, nx)
+        o = 3 * nx
+        xs = _fixed(w, o, nx)
+        xn = _fixed(w, o + nx, nx)
+        o += 2 * nx
+        y = _fixed(w, o, n)
+        ref = _fixed(w, o + n, 3 * n)
+        bnd = _fixed(w, o + 4 * n, 6)
+        o += 4 * n + 6
+        ulaw = _fixed(w, o, n)
+        u = _fixed(w, o + n, n)
+        hu = _fixed(w, o + 2 * n, n)
+        satf = _fixed(w, o + 3 * n, n)
+        x3 = _fixed(w, o + 4 * n, n)
+        o += 5 * n
+        Mp = _fixed(w, o, n * n)
+        Lp = _fixed(w, o + n * n, n * n)
+        o += 2 * n * n
+        model = _fixed(w, o, model_length(n))
+        o += model_length(n)
+        pw = _fixed(w, o, (10 + WORK_PER_LINK) * n)
+        o += (10 + WORK_PER_LINK) * n
+        wl = _fixed(w, o, work_length(n))
+        o += work_length(n)
+        wo = _fixed(w, o, work_length(n))
+        x = _fixed(X[b], 0, nx)
+        res_b = residual[b]
+        rp_b = rp[b]
+        bp_b = bp[b]
+        lg_b = lg[b]
+        og_b = og[b]
+        plant_b = plant[b]
+        nom_b = nominal[b]
+        arm_b = plant_b[: 2 * n + 1]
+        same_arm = True
+        for i in range(2 * n + 1):
+            if nom_b[i] != arm_b[i]:
+                same_arm = False
+        divlim = plant_b[2 * n + 1 + _DIVLIM]
+        k0 = ksteps[b]
+        steps = 0
+        viol = 0
+        first_viol = -1
+        diverged = 0
+        sat_steps = 0
+        stopped = False
+        for j in range(n_steps):
+            k = k0 + j
+            t = k * dt
+            for i in range(n):
+                y[i] = x[i] + (noise[b, j, i] if has_noise else 0.0)
+            nominal_model_into(y, nom_b, model, pw)
+            halt = False
+            # the three Bogacki-Shampine stages share one call site, so the inlined stage (law and
+            # observer included) is compiled once
+            for st in range(3):
+                if st == 0:
+                    ts = t
+                    kst = K0
+                    for i in range(nx):
+                        xs[i] = x[i]
+                elif st == 1:
+                    ts = t + 0.5 * dt
+                    kst = K1
+                    for i in range(nx):
+                        xs[i] = x[i] + 0.5 * dt * K0[i]
+                else:
+                    ts = t + 0.75 * dt
+                    kst = K2
+                    for i in range(nx):
+                        xs[i] = x[i] + 0.75 * dt * K1[i]
+                _stage(ts, xs, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
+                       ref, bnd, ulaw, u, hu, satf, kst, pw, Mp, Lp, model, wl, wo)
+                if st > 0:
+                    continue
+                # bookkeeping at the step's start time t (state x): constraint check of the state
+                # the previous step produced, saturation, the 1 ms record, the last torques
+                if j > 0 and _violates(x, ref, bnd, n):
+                    viol += 1
+                    if first_viol < 0:
+                        first_viol = k
+                    if terminate:
+                        halt = True
+                        break
+                for i in range(n):
+                    if satf[i] > 0.0:
+                        sat_steps += 1
+                        break
+                if k % sps == 0 and nrec[b] < rec.shape[1]:
+                    _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, K0, nom_b, x3,
+                            Mp, Lp, pw)
+                    nrec[b] += 1
+                for i in range(n):
+                    last[b, i] = u[i]
+                    last[b, n + i] = ulaw[i]
+                    last[b, 2 * n + i] = satf[i]
+            if halt:
+                stopped = True
+                break
+            ok = True
+            for i in range(nx):
+                v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
+                if not (abs(v) <= divlim):  # also catches NaN
+                    ok = False
+                xn[i] = v
+            if not ok:
+                diverged = 1
+                stopped = True
+                break
+            for i in range(nx):
+                x[i] = xn[i]
+            steps += 1
+        if not stopped:
+            t_end = (k0 + steps) * dt
+            reference_into(t_end, rp_b, arm_b, ref)
+            bounds_into(t_end, bp_b, bnd)
+            if _violates(x, ref, bnd, n):
+                viol += 1
+                if first_viol < 0:
+                    first_viol = k0 + steps
+        ksteps[b] = k0 + steps
+        status[b, 0] = steps
+        status[b, 1] = diverged
+        status[b, 2] = viol
+        status[b, 3] = first_viol
+        status[b, 4] = sat_steps
+
+
+def scratch_length(n: int) -> int:
+    """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
+    nx = 5 * n
+    return (5 * nx + 3 * n + 6 + 5 * n + 2 * n * n + (n * n + 3 * n) + (10 + WORK_PER_LINK) * n
+            + 2 * (2 * n * n + 12 * n) + n)
+
+
+# ---------------------------------------------------------------------------------------------
+# specialisation: clone the templates with the law and observer bound, compile with a disk cache
+
+
+def _source_digest(*modules: types.ModuleType) -> str:
+    """Hash of the source files the compiled code depends on.
+
+    numba's cache only watches the file that defines a function, not the files of the functions
+    it calls; folding every dependency's source into the kernel's name makes an edit anywhere
+    invalidate the cached kernel.
+    """
+    h = hashlib.sha1()
+    pkg = Path(__file__).parent
+    for p in sorted(pkg.glob("*.py")):
+        h.update(p.read_bytes())
+    for m in modules:
+        f = getattr(m, "__file__", None)
+        if f:
+            h.update(Path(f).read_bytes())
+    return h.hexdigest()[:10]
+
+
+def _clone(template, name: str, bindings: dict, **jit_options):
+    g = dict(template.__globals__)
+    g.update(bindings)
+    fn = types.FunctionType(template.__code__, g, name, template.__defaults__, template.__closure__)
+    fn.__qualname__ = name
+    fn.__module__ = template.__module__
+    fn.__doc__ = template.__doc__
+    return njit(cache=True, error_model="numpy", **jit_options)(fn)
+
+
+_KERNELS: dict[tuple, object] = {}
+
+
+def _ident(fn) -> str:
+    py = fn.py_func
+    return f"{py.__module__}.{py.__name__}".replace(".", "_")
+
+
+def _specialise(law, observer_rhs, parallel: bool, n: int):
+    key = (law, observer_rhs, parallel, n)
+    if key not in _KERNELS:
+        import sys
+
+        deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
+        tag = f"{_ident(law)}__{_ident(observer_rhs)}__{_source_digest(*deps)}"
+        stage = _clone(_stage_template, f"stage__{tag}", {"_law": law, "_observer": observer_rhs},
+                       inline="always")
+        kernel = _clone(
+            _advance_template, f"advance__{'par' if parallel else 'ser'}__n{n}__{tag}",
+            {"_stage": stage, "_N": n}, parallel=parallel, _nrt=False,
+        )
+        _KERNELS[key] = kernel
+    return _KERNELS[key]
+
+
+# ---------------------------------------------------------------------------------------------
+# Python-side shells
+
+
+class SimulationDiverged(RuntimeError):
+    """Raised on request when the state became non-finite or exceeded the divergence limit."""
+
+
+@dataclass
+class Trajectory:
+    """Signals of one run on the 1 ms grid (SPEC section 8), plus how the run ended.
+
+    Every array has the sample axis first; joint signals are (samples, n). ``u`` is the torque
+    commanded to the actuators (law + residual, after the limit), ``h_u`` what the dead-zone passes,
+    ``x3`` the true lumped disturbance against the controller's nominal model and ``x3_hat`` the
+    observer's estimate.
+    """
+
+    scenario: str
+    controller: str
+    dt: float
+    signals: dict[str, np.ndarray]
+    diverged: bool = False
+    diverged_at: float | None = None
+    step_violations: int = 0
+    """Integration steps whose end state broke a bound (finer than the 1 ms samples)."""
+    first_violation_step_time: float | None = None
+    saturated_steps: int = 0
+    wall_s: float = 0.0
+    message: str = ""
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        signals = self.__dict__.get("signals", {})
+        if name in signals:
+            return signals[name]
+        raise AttributeError(name)
+
+    @property
+    def n_samples(self) -> int:
+        return int(self.signals["t"].shape[0])
+
+    def save_npz(self, path: str | os.PathLike) -> None:
+        """Write the signals and metadata atomically to ``path`` (.npz)."""
+        from .io import atomic_write_npz
+
+        meta = dict(scenario=self.scenario, controller=self.controller, dt=self.dt,
+                    diverged=self.diverged, diverged_at=self.diverged_at)
+        atomic_write_npz(path, {**self.signals, **{f"meta_{k}": np.asarray(v if v is not None else np.nan)
+                                                  for k, v in meta.items()}})
+
+
+@dataclass
+class _Batch:
+    scenarios: list[Scenario]
+    plant: np.ndarray
+    nominal: np.ndarray
+    ref: np.ndarray
+    bnd: np.ndarray
+    law_gains: np.ndarray
+    obs_gains: np.ndarray
+
+
+class ClosedLoop:
+    """N arms with one controller and one observer, stepped by the compiled kernel.
+
+    Each arm has its own scenario (plant, reference, bounds); all share ``dt``. The state, the
+    global step counter and the last applied torques live here; :meth:`advance` runs the kernel.
+    """
+
+    def __init__(
+        self,
+        scenarios: Sequence[Scenario],
+        controller: str | InnerController = "proposed",
+        observer: str | Observer = "leso",
+        parallel: bool | None = None,
+    ) -> None:
+        if len(scenarios) == 0:
+            raise ValueError("ClosedLoop needs at least one scenario")
+        self.controller = make_controller(controller)
+        self.observer = make_observer(observer)
+        self.n = scenarios[0].arm.n_links
+        dts = {s.sim.dt for s in scenarios}
+        if len(dts) != 1:
+            raise ValueError(f"all scenarios of a ClosedLoop must share SimParams.dt, got {sorted(dts)}")
+        self.dt = dts.pop()
+        sps = {s.sim.steps_per_sample for s in scenarios}
+        if len(sps) != 1:
+            raise ValueError("all scenarios of a ClosedLoop must share SimParams.sample_period")
+        self.steps_per_sample = sps.pop()
+        self.parallel = len(scenarios) > 1 if parallel is None else parallel
+        self._kernel = _specialise(self.controller.law, self.observer.rhs, self.parallel, self.n)
+        self.N = len(scenarios)
+        self.X = np.zeros((self.N, 5 * self.n))
+        self.ksteps = np.zeros(self.N, dtype=np.int64)
+        self.last = np.zeros((self.N, 3 * self.n))
+        self._scratch = np.zeros((self.N, scratch_length(self.n)))
+        self.set_scenarios(scenarios)
+
+    def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None) -> None:
+        """Install scenarios (all, or the arms listed in ``which``) and reset those arms."""
+        idx = list(range(self.N)) if which is None else list(which)
+        if len(scenarios) != len(idx):
+            raise ValueError("one scenario per reset arm is required")
+        if not hasattr(self, "_batch"):
+            n = self.n
+            self._batch = _Batch(
+                scenarios=list(scenarios),
+                plant=np.zeros((self.N, 2 * n + 14)),
+                nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
+                ref=np.zeros((self.N, 12)),
+                bnd=np.zeros((self.N, 5)),
+                law_gains=np.tile(self.controller.gains, (self.N, 1)),
+                obs_gains=np.tile(self.observer.gains, (self.N, 1)),
+            )
+            if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
+                raise ValueError("controller/observer nominal model must have as many links as the plant")
+            self._obs_nominal_differs = self.observer.nominal.pack().tolist() != self.controller.nominal.pack().tolist()
+            if self._obs_nominal_differs:
+                raise ValueError("the controller and the observer must share one nominal model")
+        b = self._batch
+        for i, sc in zip(idx, scenarios):
+            if sc.arm.n_links != self.n or sc.sim.dt != self.dt or sc.sim.steps_per_sample != self.steps_per_sample:
+                raise ValueError("a replacement scenario must keep n links, dt and sample_period")
+            b.scenarios[i] = sc
+            b.plant[i] = sc.pack_plant()
+            b.ref[i] = sc.pack_reference()
+            b.bnd[i] = sc.bounds.pack()
+            self._reset_arm(i, sc)
+
+    def _reset_arm(self, i: int, sc: Scenario) -> None:
+        from .reference import joint_reference
+
+        n = self.n
+        q_d0 = joint_reference(0.0, sc)[0]
+        q0 = q_d0 + np.asarray(sc.initial_error)
+        self.X[i] = 0.0
+        self.X[i, :n] = q0
+        self.X[i, 2 * n :] = self.observer.initial(q0.copy())
+        self.ksteps[i] = 0
+        self.last[i] = 0.0
+
+    @property
+    def time(self) -> np.ndarray:
+        """Simulated time of each arm, s (global step counter times dt, never accumulated)."""
+        return self.ksteps * self.dt
+
+    def advance(
+        self,
+        n_steps: int,
+        residual: np.ndarray | None = None,
+        noise: np.ndarray | None = None,
+        terminate: bool = False,
+        record_samples: int | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Run ``n_steps`` ODE3 steps on every arm.
+
+        ``residual`` (N, n) N m is added to the law's torque over the whole call; ``noise``
+        (N, n_steps, n) rad is added to the measured angles step by step. Returns
+        ``(rec, nrec, status)``: recorded samples (N, S, channels, n), how many per arm, and the
+        status columns [steps, diverged, violating steps, first violating step or -1, saturated
+        steps].
+        """
+        N, n = self.N, self.n
+        res = np.zeros((N, n)) if residual is None else np.ascontiguousarray(residual, dtype=np.float64)
+        if res.shape != (N, n):
+            raise ValueError(f"residual must have shape {(N, n)}, got {res.shape}")
+        nz = np.zeros((N, 0, n)) if noise is None else np.ascontiguousarray(noise, dtype=np.float64)
+        if nz.shape[1] not in (0, n_steps) or nz.shape[0] != N:
+            raise ValueError(f"noise must have shape {(N, n_steps, n)}, got {nz.shape}")
+        if record_samples is None:
+            record_samples = n_steps // self.steps_per_sample + 1
+        rec = np.zeros((N, record_samples, N_CHANNELS, n))
+        nrec = np.zeros(N, dtype=np.int64)
+        status = np.zeros((N, N_STATUS), dtype=np.int64)
+        b = self._batch
+        self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), int(self.steps_per_sample),
+                     b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, res, nz,
+                     bool(terminate), rec, nrec, status, self.last, self._scratch)
+        return rec, nrec, status
+
+
+def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec: int,
+                status: np.ndarray, wall: float) -> Trajectory:
+    r = rec[:nrec]
+    signals = {name: (r[:, i, 0].copy() if name == "t" else r[:, i, :].copy())
+               for i, name in enumerate(CHANNELS)}
+    diverged = bool(status[ST_DIVERGED])
+    steps = int(status[ST_STEPS])
+    fv = int(status[ST_FIRST_VIOL])
+    msg = ""
+    if diverged:
+        msg = (f"simulation diverged at t = {steps * dt:.6f} s (state non-finite or above "
+               f"SimParams.divergence_limit after step {steps}): the step dt = {dt} s is likely "
+               f"too large for the gains, or the plant parameters are extreme; the signals up to "
+               f"that time are kept")
+    return Trajectory(
+        scenario=sc.name, controller=controller, dt=dt, signals=signals, diverged=diverged,
+        diverged_at=steps * dt if diverged else None,
+        step_violations=int(status[ST_VIOL_STEPS]),
+        first_violation_step_time=None if fv < 0 else fv * dt,
+        saturated_steps=int(status[ST_SAT_STEPS]), wall_s=wall, message=msg,
+    )
+
+
+def simulate_batch(
+    scenarios: Sequence[Scenario],
+    controller: str | InnerController = "proposed",
+    observer: str | Observer = "leso",
+    noise_seeds: Sequence[int] | None = None,
+    parallel: bool | None = None,
+) -> list[Trajectory]:
+    """Run whole episodes (each scenario's ``sim.duration``) for N scenarios in one kernel call.
+
+    The law is evaluated at every ODE3 stage; episodes are not terminated on violation (they are
+    counted). A diverging arm stops early and its trajectory says so (``diverged``, ``message``).
+    """
+    loop = ClosedLoop(scenarios, controller, observer, parallel=parallel)
+    steps = {s.sim.n_steps for s in scenarios}
+    if len(steps) != 1:
+        raise ValueError("simulate_batch needs scenarios of one duration")
+    n_steps = steps.pop()
+    noise = None
+    if any(s.angle_noise_std > 0 for s in scenarios):
+        seeds = noise_seeds if noise_seeds is not None else range(len(scenarios))
+        noise = np.stack([np.random.default_rng(sd).standard_normal((n_steps, loop.n)) * s.angle_noise_std
+                          for sd, s in zip(seeds, scenarios)])
+    t0 = time.perf_counter()
+    rec, nrec, status = loop.advance(n_steps, noise=noise, record_samples=scenarios[0].sim.n_samples)
+    wall = time.perf_counter() - t0
+    name = loop.controller.name
+    return [_trajectory(sc, name, loop.dt, rec[i], int(nrec[i]), status[i], wall / len(scenarios))
+            for i, sc in enumerate(scenarios)]
+
+
+def simulate(
+    scenario: Scenario | str = "paper-0.1hz",
+    controller: str | InnerController = "proposed",
+    observer: str | Observer = "leso",
+    noise_seed: int = 0,
+    raise_on_divergence: bool = False,
+) -> Trajectory:
+    """Run one whole episode and return its :class:`Trajectory` on the 1 ms grid.
+
+    >>> traj = simulate("paper-0.1hz", "proposed")
+    >>> traj.e1.shape
+    (30000, 3)
+    """
+    if isinstance(scenario, str):
+        from .params import preset
+
+        scenario = preset(scenario)
+    traj = simulate_batch([scenario], controller, observer, noise_seeds=[noise_seed], parallel=False)[0]
+    if traj.diverged and raise_on_divergence:
+        raise SimulationDiverged(traj.message)
+    return traj
+

@@ -1,0 +1,49 @@
+"""The plant's uncertainties: joint friction, the input dead-zone and the external-force schedule.
+
+Compiled scalar/vector functions used inside the closed-loop kernel; parameters are read from the
+packed plant vector (:meth:`blf_gym.params.Scenario.pack_plant`), whose offsets are computed by
+:func:`plant_offsets`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["friction", "dead_zone", "force_active", "plant_offsets"]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def friction(qd, viscous, coulomb, tanh_slope):
+    """tau_fric = b qd + c tanh(psi qd) for one joint (paper eq. 2), N m."""
+    return viscous * qd + coulomb * np.tanh(tanh_slope * qd)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def dead_zone(tau, slope_right, slope_left, break_right, break_left):
+    """The asymmetric dead-zone H(tau) of paper eq. (3), N m."""
+    if tau >= break_right:
+        return slope_right * (tau - break_right)
+    if tau <= break_left:
+        return slope_left * (tau - break_left)
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def force_active(t, onset):
+    """1.0 once the external force is on (step at ``onset``), else 0.0."""
+    return 1.0 if t >= onset else 0.0
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def plant_offsets(n):
+    """Index of the first entry after the arm block in the packed plant vector (2n + 1)."""
+    return 2 * n + 1
+
+
+def dead_zone_array(tau: np.ndarray, slope_right: float = 1.0, slope_left: float = 1.2,
+                    break_right: float = 0.2, break_left: float = -0.2) -> np.ndarray:
+    """Vectorized :func:`dead_zone` for NumPy arrays (plots and tests)."""
+    tau = np.asarray(tau, dtype=float)
+    return np.where(tau >= break_right, slope_right * (tau - break_right),
+                    np.where(tau <= break_left, slope_left * (tau - break_left), 0.0))
