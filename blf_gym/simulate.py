@@ -246,8 +246,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         o += 2 * n * n
         model = _fixed(w, o, model_length(n))
         o += model_length(n)
-        pw = _fixed(w, o, (10 + WORK_PER_LINK) * n)
-        o += (10 + WORK_PER_LINK) * n
+        pw = _fixed(w, o, (10 + WORK_PER_LINK) * n + n * n)
+        o += (10 + WORK_PER_LINK) * n + n * n
         wl = _fixed(w, o, work_length(n))
         o += work_length(n)
         wo = _fixed(w, o, work_length(n))
@@ -357,8 +357,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
 def scratch_length(n: int) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
     nx = 5 * n
-    return (5 * nx + 3 * n + 6 + 5 * n + 2 * n * n + (n * n + 3 * n) + (10 + WORK_PER_LINK) * n
-            + 2 * (2 * n * n + 12 * n) + n)
+    return (5 * nx + 4 * n + 6 + 5 * n + 2 * n * n + (2 * n * n + 3 * n)
+            + (10 + WORK_PER_LINK) * n + n * n + 2 * (2 * n * n + 12 * n))
 
 
 # ---------------------------------------------------------------------------------------------
