@@ -80,7 +80,7 @@ def run_cases(
 ) -> list[tuple[dict[str, Any], Any]]:
     """Run every (controller, preset) pair; return ``[(record, trajectory), ...]``.
 
-    Each controller runs all its presets in one parallel kernel call. ``on_done(pairs)`` is
+    Each controller runs all its presets in one kernel call, split over threads. ``on_done(pairs)`` is
     called after each controller with everything finished so far (used to save partial results).
     """
     from blf_gym.simulate import simulate_batch
@@ -104,7 +104,7 @@ def run_cases(
             if bar is not None:
                 bar.set_postfix_str(ctrl)
             t0 = time.perf_counter()
-            trajs = simulate_batch(scenarios, ctrl, parallel=len(scenarios) > 1)
+            trajs = simulate_batch(scenarios, ctrl)
             wall = time.perf_counter() - t0
             for sc, tr in zip(scenarios, trajs):
                 rec = summarize([tr], ctrl, "baseline", sc.name, sc.sim.dt, wall_s=wall / len(trajs))
@@ -199,7 +199,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def _first_run() -> bool:
     """True when no compiled kernel is cached yet (so the user is told why the wait is long)."""
     cache = Path(__file__).resolve().parent.parent / "blf_gym" / "__pycache__"
-    return not any(cache.glob("simulate.advance__par__*.nbi")) if cache.exists() else True
+    return not any(cache.glob("simulate.advance__*.nbi")) if cache.exists() else True
 
 
 if __name__ == "__main__":

@@ -26,7 +26,7 @@ def _closed_loop_step_us(controller: str, repeats: int) -> tuple[float, list[flo
     from blf_gym.simulate import ClosedLoop
 
     sc = preset("paper-0.1hz")
-    loop = ClosedLoop([sc], controller, parallel=False)
+    loop = ClosedLoop([sc], controller, threads=1)
     loop.advance(10)  # load or compile the kernel
     times = []
     for _ in range(repeats):

@@ -20,11 +20,10 @@ Law signature (all arrays float64, C-contiguous; n joints)::
     ref      (3n,)       [q_d, qd_d, qdd_d]
     bnd      (6,)        [k_a, k_a', k_a'', k_b, k_b', k_b''] (same bound on every joint)
     nominal  (2n+1,)     the controller's nominal arm, ArmParams.pack()
-    model    (2n^2+3n,)  the nominal model at the measured angles y (held over a step), computed
-                         once per step by the kernel and shared with the observer:
-                         [M(y) flat row-major (n^2), G(y) (n), cos of the absolute link angles
-                         (n), their sines (n), M(y)^-1 flat row-major (n^2)]; pass its trig part
-                         to blf_gym.dynamics.coriolis_times_into for C(y, v) w
+    model    (n^2+3n,)   the nominal model at the measured angles y, computed once per stage by
+                         the kernel and shared by the law and the observer: [M(y) flat row-major
+                         (n^2), G(y) (n), cos of the absolute link angles (n), their sines (n)];
+                         pass its trig part to blf_gym.dynamics.coriolis_times_into for C(y, v) w
     gains    (G,)        the controller's own packed gains
     u_out    (n,)        write the commanded torque here, N m (finite, always)
     work     (WORK,)     scratch of length work_length(n); contents undefined on entry
@@ -50,7 +49,7 @@ from typing import Any, Callable
 import numpy as np
 from numba import njit
 
-from .dynamics import abs_trig_into, cholesky_solve_into, gravity_into, mass_matrix_into
+from .dynamics import abs_trig_into, gravity_into, mass_matrix_into
 from .params import ArmParams
 
 __all__ = [
@@ -76,31 +75,19 @@ def work_length(n):
 @njit(cache=True, error_model="numpy", inline="always")
 def model_length(n):
     """Length of the ``model`` array handed to a law or an observer for n joints."""
-    return 2 * n * n + 3 * n
+    return n * n + 3 * n
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def nominal_model_into(y, nominal, model, work):
-    """Fill ``model`` = [M(y), G(y), cos theta, sin theta, M(y)^-1] of the nominal arm (see
-    above). ``work`` needs ``n^2 + 3n`` entries."""
+    """Fill ``model`` = [M(y), G(y), cos theta, sin theta] of the nominal arm (see above).
+    ``work`` needs ``n`` entries."""
     n = y.shape[0]
     nn = n * n
     trig = model[nn + n : nn + 3 * n]
-    M = model[:nn]
     abs_trig_into(y, trig)
-    mass_matrix_into(trig, nominal, M, work)
+    mass_matrix_into(trig, nominal, model[:nn], work)
     gravity_into(trig, nominal, model[nn : nn + n], work)
-    L = work[:nn]
-    e = work[nn : nn + n]
-    col = work[nn + n : nn + 2 * n]
-    inv = model[nn + 3 * n : 2 * nn + 3 * n]
-    for k in range(n):
-        for i in range(n):
-            e[i] = 0.0
-        e[k] = 1.0
-        cholesky_solve_into(M, e, col, L)
-        for i in range(n):
-            inv[i * n + k] = col[i]
 
 
 @njit(cache=True, error_model="numpy", inline="always")

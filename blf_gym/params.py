@@ -254,6 +254,15 @@ class SimParams:
     unbounded; the default is above the largest torque any paper case commands."""
     divergence_limit: float = 1e6
     """A state entry above this magnitude (or non-finite) counts as divergence (> 0)."""
+    error_rtol: float = 1e-2
+    """Relative tolerance of the instability detector (> 0): ODE3's embedded error estimate of a
+    step is compared with error_atol + error_rtol |x|. These are loose on purpose: they flag a step
+    outside the integrator's stability region, not an inaccurate one."""
+    error_atol: float = 1e-3
+    """Absolute tolerance of the instability detector, in the state's units (> 0)."""
+    unstable_steps: int = 100
+    """That many consecutive steps above tolerance count as numerical divergence (>= 1). A
+    saturating actuator can keep an unstable integration finite; this still catches it."""
 
     def __post_init__(self) -> None:
         _positive("SimParams", "dt", self.dt)
@@ -261,6 +270,10 @@ class SimParams:
         _positive("SimParams", "sample_period", self.sample_period)
         _positive("SimParams", "max_torque", self.max_torque)
         _positive("SimParams", "divergence_limit", self.divergence_limit)
+        _positive("SimParams", "error_rtol", self.error_rtol)
+        _positive("SimParams", "error_atol", self.error_atol)
+        if int(self.unstable_steps) != self.unstable_steps or self.unstable_steps < 1:
+            raise ValueError(f"SimParams.unstable_steps must be an integer >= 1, got {self.unstable_steps!r}")
         ratio = self.sample_period / self.dt
         if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
             raise ValueError(
@@ -352,13 +365,14 @@ class Scenario:
     def pack_plant(self) -> np.ndarray:
         """Layout: ``arm.pack()`` (2n+1), then [viscous, coulomb, tanh_slope,
         slope_right, slope_left, break_right, break_left, f_x, f_y, moment, onset, max_torque,
-        divergence_limit]. See :data:`blf_gym.simulate.PLANT_LAYOUT`."""
+        divergence_limit, error_rtol, error_atol, unstable_steps]."""
         f, d, w = self.friction, self.dead_zone, self.force
         tail = [
             f.viscous, f.coulomb, f.tanh_slope,
             d.slope_right, d.slope_left, d.break_right, d.break_left,
             *w.wrench, w.onset,
             self.sim.max_torque, self.sim.divergence_limit,
+            self.sim.error_rtol, self.sim.error_atol, float(self.sim.unstable_steps),
         ]
         return np.concatenate([self.arm.pack(), np.asarray(tail, dtype=np.float64)])
 

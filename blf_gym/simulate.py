@@ -1,8 +1,8 @@
 """The closed loop: plant + observer + inner controller, integrated by fixed-step ODE3.
 
 One compiled kernel serves everything: the reproduction (one arm, a whole 30 s episode per call),
-the Gymnasium env (one arm, one agent period per call) and the vector env (N arms per call, in
-parallel threads). It is specialised per (controller law, observer) pair by cloning the template
+the Gymnasium env (one arm, one agent period per call) and the vector env (N arms per call, split
+over threads: the compiled kernel releases the GIL). It is specialised per (controller law, observer) pair by cloning the template
 functions below with the law and observer bound as globals, then compiled by numba with
 ``cache=True`` so a warm start loads machine code from disk.
 
@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
 from .bounds import bounds_into
 from .controller import (
@@ -67,7 +67,8 @@ _C = {name: i for i, name in enumerate(CHANNELS)}
 N_CHANNELS = len(CHANNELS)
 
 # Offsets after the arm block (2n+1) in the packed plant vector, see Scenario.pack_plant.
-_VISC, _COUL, _PSI, _HR, _HL, _TR, _TL, _FX, _FY, _MZ, _ONSET, _UMAX, _DIVLIM = range(13)
+(_VISC, _COUL, _PSI, _HR, _HL, _TR, _TL, _FX, _FY, _MZ, _ONSET, _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL,
+ _UNSTABLE_STEPS) = range(16)
 
 # status columns
 ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS = range(5)
@@ -135,13 +136,16 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, dx, nominal, x3, M, L, work
         r[16, i] = y[i]
 
 
-def _stage_template(t, x, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref, bnd, ulaw, u, hu,
-                    satf, dx, pw, Mp, Lp, model, wl, wo):
+def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref, bnd, ulaw,
+                    u, hu, satf, dx, pw, Mp, Lp, model, wl, wo):
     """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
 
+    The measurement is y = q(stage) + noise, the noise sample held over the step, so without noise
+    the law and the observer see the angles at every stage like Simulink's continuous blocks.
     ``_law`` and ``_observer`` are globals bound by :func:`_specialise`.
     """
     n = y.shape[0]
+    nn = n * n
     arm = plant[: 2 * n + 1]
     o = 2 * n + 1
     reference_into(t, rp, arm, ref)
@@ -149,20 +153,31 @@ def _stage_template(t, x, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref,
     q = x[:n]
     qd = x[n : 2 * n]
     xh = x[2 * n :]
-    nn = n * n
-    # ``model`` (the nominal model at the measured angles y, held over the step) is computed once
-    # per step by the caller. Without measurement noise, y equals q at the first stage, and when
-    # the nominal arm is the true one (the paper's cases) the plant's M and G are the same too.
-    trig = pw[4 * n : 6 * n]
     same_angles = True
     for i in range(n):
+        y[i] = q[i] + noise_j[i]
         if y[i] != q[i]:
             same_angles = False
-    if same_angles:
+    # the plant's configuration terms
+    trig = pw[4 * n : 6 * n]
+    c = pw[6 * n : 7 * n]
+    g = pw[7 * n : 8 * n]
+    jf = pw[8 * n : 9 * n]
+    rhs = pw[9 * n : 10 * n]
+    abs_trig_into(q, trig)
+    mass_matrix_into(trig, arm, Mp, pw)
+    gravity_into(trig, arm, g, pw)
+    # The nominal model at the measured angles, shared by the law and the observer. Without noise
+    # y == q, and when the nominal arm is the true one (the paper's cases) it equals the plant's.
+    if same_angles and same_arm:
+        for i in range(nn):
+            model[i] = Mp[i]
+        for i in range(n):
+            model[nn + i] = g[i]
         for i in range(2 * n):
-            trig[i] = model[nn + n + i]
+            model[nn + n + i] = trig[i]
     else:
-        abs_trig_into(q, trig)
+        nominal_model_into(y, nominal, model, pw[10 * n :])
     _law(t, y, qd, xh, ref, bnd, nominal, model, lg, ulaw, wl)  # noqa: F821 (bound at specialisation)
     umax = plant[o + _UMAX]
     for i in range(n):
@@ -178,18 +193,6 @@ def _stage_template(t, x, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref,
         satf[i] = s
         hu[i] = dead_zone(ui, plant[o + _HR], plant[o + _HL], plant[o + _TR], plant[o + _TL])
     # plant: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
-    c = pw[6 * n : 7 * n]
-    g = pw[7 * n : 8 * n]
-    jf = pw[8 * n : 9 * n]
-    rhs = pw[9 * n : 10 * n]
-    if same_angles and same_arm:
-        for i in range(nn):
-            Mp[i] = model[i]
-        for i in range(n):
-            g[i] = model[nn + i]
-    else:
-        mass_matrix_into(trig, arm, Mp, pw)
-        gravity_into(trig, arm, g, pw)
     coriolis_times_into(trig, qd, qd, arm, c, pw)
     if force_active(t, plant[o + _ONSET]) > 0.0:
         wrench_torque_into(trig, arm, plant[o + _FX : o + _MZ + 1], jf)
@@ -205,7 +208,7 @@ def _stage_template(t, x, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref,
 
 
 def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
-                      noise, terminate, rec, nrec, status, last, scratch):
+                      noise, terminate, rec, nrec, status, last, scratch, errstat):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
 
     Stops an arm early on divergence (state restored to the last finite one) or, when
@@ -217,7 +220,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
     N = X.shape[0]
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     has_noise = noise.shape[1] > 0
-    for b in prange(N):
+    for b in range(N):
         nx = 5 * n
         # Scratch views. The kernel is compiled without NRT: it allocates nothing and views carry
         # no reference counting (which would otherwise dominate a step's cost). Every view is
@@ -230,11 +233,13 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         o = 3 * nx
         xs = _fixed(w, o, nx)
         xn = _fixed(w, o + nx, nx)
-        o += 2 * nx
+        ep = _fixed(w, o + 2 * nx, nx)
+        o += 3 * nx
         y = _fixed(w, o, n)
-        ref = _fixed(w, o + n, 3 * n)
-        bnd = _fixed(w, o + 4 * n, 6)
-        o += 4 * n + 6
+        nz = _fixed(w, o + n, n)
+        ref = _fixed(w, o + 2 * n, 3 * n)
+        bnd = _fixed(w, o + 5 * n, 6)
+        o += 5 * n + 6
         ulaw = _fixed(w, o, n)
         u = _fixed(w, o + n, n)
         hu = _fixed(w, o + 2 * n, n)
@@ -265,6 +270,11 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
             if nom_b[i] != arm_b[i]:
                 same_arm = False
         divlim = plant_b[2 * n + 1 + _DIVLIM]
+        err_rtol = plant_b[2 * n + 1 + _ERR_RTOL]
+        err_atol = plant_b[2 * n + 1 + _ERR_ATOL]
+        unstable_steps = plant_b[2 * n + 1 + _UNSTABLE_STEPS]
+        err_max = 0.0
+        err_run = 0
         k0 = ksteps[b]
         steps = 0
         viol = 0
@@ -276,8 +286,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
             k = k0 + j
             t = k * dt
             for i in range(n):
-                y[i] = x[i] + (noise[b, j, i] if has_noise else 0.0)
-            nominal_model_into(y, nom_b, model, pw)
+                nz[i] = noise[b, j, i] if has_noise else 0.0
             halt = False
             # the three Bogacki-Shampine stages share one call site, so the inlined stage (law and
             # observer included) is compiled once
@@ -297,10 +306,30 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     kst = K2
                     for i in range(nx):
                         xs[i] = x[i] + 0.75 * dt * K1[i]
-                _stage(ts, xs, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
+                _stage(ts, xs, nz, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
                        ref, bnd, ulaw, u, hu, satf, kst, pw, Mp, Lp, model, wl, wo)
                 if st > 0:
                     continue
+                if j > 0:
+                    # Embedded second-order error estimate of the previous step (Bogacki-Shampine,
+                    # first-same-as-last: this stage is that step's fourth evaluation). It grows
+                    # without bound when h is outside ODE3's stability region, even when the
+                    # actuator limit keeps the state finite.
+                    en = 0.0
+                    for i in range(nx):
+                        e = abs(dt * (ep[i] - 0.125 * K0[i])) / (err_atol + err_rtol * abs(x[i]))
+                        if e > en:
+                            en = e
+                    if en > err_max:
+                        err_max = en
+                    if en > 1.0:
+                        err_run += 1
+                        if err_run >= unstable_steps:
+                            diverged = 2
+                            halt = True
+                            break
+                    else:
+                        err_run = 0
                 # bookkeeping at the step's start time t (state x): constraint check of the state
                 # the previous step produced, saturation, the 1 ms record, the last torques
                 if j > 0 and _violates(x, ref, bnd, n):
@@ -327,6 +356,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 break
             ok = True
             for i in range(nx):
+                ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
                 v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
                 if not (abs(v) <= divlim):  # also catches NaN
                     ok = False
@@ -352,12 +382,13 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         status[b, 2] = viol
         status[b, 3] = first_viol
         status[b, 4] = sat_steps
+        errstat[b] = err_max
 
 
 def scratch_length(n: int) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
     nx = 5 * n
-    return (5 * nx + 4 * n + 6 + 5 * n + 2 * n * n + (2 * n * n + 3 * n)
+    return (6 * nx + 5 * n + 6 + 5 * n + 2 * n * n + (n * n + 3 * n)
             + (10 + WORK_PER_LINK) * n + n * n + 2 * (2 * n * n + 12 * n))
 
 
@@ -401,8 +432,8 @@ def _ident(fn) -> str:
     return f"{py.__module__}.{py.__name__}".replace(".", "_")
 
 
-def _specialise(law, observer_rhs, parallel: bool, n: int):
-    key = (law, observer_rhs, parallel, n)
+def _specialise(law, observer_rhs, n: int):
+    key = (law, observer_rhs, n)
     if key not in _KERNELS:
         import sys
 
@@ -411,8 +442,8 @@ def _specialise(law, observer_rhs, parallel: bool, n: int):
         stage = _clone(_stage_template, f"stage__{tag}", {"_law": law, "_observer": observer_rhs},
                        inline="always")
         kernel = _clone(
-            _advance_template, f"advance__{'par' if parallel else 'ser'}__n{n}__{tag}",
-            {"_stage": stage, "_N": n}, parallel=parallel, _nrt=False,
+            _advance_template, f"advance__n{n}__{tag}",
+            {"_stage": stage, "_N": n}, nogil=True, _nrt=False,
         )
         _KERNELS[key] = kernel
     return _KERNELS[key]
@@ -492,7 +523,7 @@ class ClosedLoop:
         scenarios: Sequence[Scenario],
         controller: str | InnerController = "proposed",
         observer: str | Observer = "leso",
-        parallel: bool | None = None,
+        threads: int | None = None,
     ) -> None:
         if len(scenarios) == 0:
             raise ValueError("ClosedLoop needs at least one scenario")
@@ -507,8 +538,13 @@ class ClosedLoop:
         if len(sps) != 1:
             raise ValueError("all scenarios of a ClosedLoop must share SimParams.sample_period")
         self.steps_per_sample = sps.pop()
-        self.parallel = len(scenarios) > 1 if parallel is None else parallel
-        self._kernel = _specialise(self.controller.law, self.observer.rhs, self.parallel, self.n)
+        if threads is None:
+            threads = min(len(scenarios), os.cpu_count() or 1)
+        if threads < 1:
+            raise ValueError(f"threads must be >= 1, got {threads}")
+        self.threads = int(threads)
+        self._pool = None
+        self._kernel = _specialise(self.controller.law, self.observer.rhs, self.n)
         self.N = len(scenarios)
         self.X = np.zeros((self.N, 5 * self.n))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
@@ -525,7 +561,7 @@ class ClosedLoop:
             n = self.n
             self._batch = _Batch(
                 scenarios=list(scenarios),
-                plant=np.zeros((self.N, 2 * n + 14)),
+                plant=np.zeros((self.N, 2 * n + 17)),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
                 ref=np.zeros((self.N, 12)),
                 bnd=np.zeros((self.N, 5)),
@@ -593,10 +629,49 @@ class ClosedLoop:
         nrec = np.zeros(N, dtype=np.int64)
         status = np.zeros((N, N_STATUS), dtype=np.int64)
         b = self._batch
-        self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), int(self.steps_per_sample),
-                     b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, res, nz,
-                     bool(terminate), rec, nrec, status, self.last, self._scratch)
+        errstat = np.zeros(N)
+        arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
+                  res, nz, rec, nrec, status, self.last, self._scratch, errstat)
+
+        def run(lo: int, hi: int) -> None:
+            a = [arr[lo:hi] for arr in arrays]
+            self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
+                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], bool(terminate),
+                         a[10], a[11], a[12], a[13], a[14], a[15])
+
+        threads = min(self.threads, N)
+        if threads <= 1:
+            run(0, N)
+            self.error_estimate = errstat
+            return rec, nrec, status
+        else:
+            # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and
+            # write into views of the shared arrays. Each arm's arithmetic is the same as alone.
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
+
+                self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="blf")
+            edges = np.linspace(0, N, threads + 1).round().astype(int)
+            futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+            for f in futures:
+                f.result()
+        self.error_estimate = errstat
         return rec, nrec, status
+
+
+def divergence_message(code: int, t: float, dt: float) -> str:
+    """Human-readable reason for a kernel divergence code (status column ``diverged``)."""
+    if code == 1:
+        return (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
+                f"SimParams.divergence_limit. The step dt = {dt} s is likely too large for the "
+                f"gains, or the plant parameters are extreme; the signals up to that time are kept")
+    if code == 2:
+        return (f"simulation diverged numerically at t = {t:.6f} s: ODE3's embedded error estimate "
+                f"stayed above tolerance for SimParams.unstable_steps consecutive steps, so dt = "
+                f"{dt} s is outside the integrator's stability region for these gains (the "
+                f"actuator limit kept the state finite, but the numbers are meaningless). Use a "
+                f"smaller dt (0.1 ms for the paper's gains); the signals up to that time are kept")
+    return ""
 
 
 def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec: int,
@@ -604,15 +679,11 @@ def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec:
     r = rec[:nrec]
     signals = {name: (r[:, i, 0].copy() if name == "t" else r[:, i, :].copy())
                for i, name in enumerate(CHANNELS)}
-    diverged = bool(status[ST_DIVERGED])
+    code = int(status[ST_DIVERGED])
+    diverged = code != 0
     steps = int(status[ST_STEPS])
     fv = int(status[ST_FIRST_VIOL])
-    msg = ""
-    if diverged:
-        msg = (f"simulation diverged at t = {steps * dt:.6f} s (state non-finite or above "
-               f"SimParams.divergence_limit after step {steps}): the step dt = {dt} s is likely "
-               f"too large for the gains, or the plant parameters are extreme; the signals up to "
-               f"that time are kept")
+    msg = divergence_message(code, steps * dt, dt)
     return Trajectory(
         scenario=sc.name, controller=controller, dt=dt, signals=signals, diverged=diverged,
         diverged_at=steps * dt if diverged else None,
@@ -627,14 +698,14 @@ def simulate_batch(
     controller: str | InnerController = "proposed",
     observer: str | Observer = "leso",
     noise_seeds: Sequence[int] | None = None,
-    parallel: bool | None = None,
+    threads: int | None = None,
 ) -> list[Trajectory]:
     """Run whole episodes (each scenario's ``sim.duration``) for N scenarios in one kernel call.
 
     The law is evaluated at every ODE3 stage; episodes are not terminated on violation (they are
     counted). A diverging arm stops early and its trajectory says so (``diverged``, ``message``).
     """
-    loop = ClosedLoop(scenarios, controller, observer, parallel=parallel)
+    loop = ClosedLoop(scenarios, controller, observer, threads=threads)
     steps = {s.sim.n_steps for s in scenarios}
     if len(steps) != 1:
         raise ValueError("simulate_batch needs scenarios of one duration")
@@ -669,7 +740,7 @@ def simulate(
         from .params import preset
 
         scenario = preset(scenario)
-    traj = simulate_batch([scenario], controller, observer, noise_seeds=[noise_seed], parallel=False)[0]
+    traj = simulate_batch([scenario], controller, observer, noise_seeds=[noise_seed], threads=1)[0]
     if traj.diverged and raise_on_divergence:
         raise SimulationDiverged(traj.message)
     return traj
