@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from blf_gym.controller import model_length, nominal_model_into
-from blf_gym.dynamics import cholesky_solve_into, coriolis_times_into
+from blf_gym.dynamics import cholesky_solve_factored, coriolis_times_into
 
 __all__ = ["leso_rhs", "LESO"]
 
@@ -28,20 +28,19 @@ def leso_rhs(y, xhat, u, nominal, model, gains, dxhat, work):
     n = y.shape[0]
     k0 = gains[0]
     nn = n * n
-    M = model[:nn]
     g = model[nn : nn + n]
     trig = model[nn + n : nn + 3 * n]
-    L = work[:nn]
-    c = work[nn : nn + n]
-    r = work[nn + n : nn + 2 * n]
-    acc = work[nn + 2 * n : nn + 3 * n]
-    dyn = work[nn + 3 * n : nn + 6 * n]
+    chol = model[nn + 3 * n : 2 * nn + 3 * n]
+    c = work[:n]
+    r = work[n : 2 * n]
+    acc = work[2 * n : 3 * n]
+    dyn = work[3 * n : 6 * n]
     x2 = xhat[n : 2 * n]
     # F(y, x2_hat) + M^-1 u = M^-1 (u - C(y, x2_hat) x2_hat - G(y))
     coriolis_times_into(trig, x2, x2, nominal, c, dyn)
     for i in range(n):
         r[i] = u[i] - c[i] - g[i]
-    cholesky_solve_into(M, r, acc, L)
+    cholesky_solve_factored(chol, r, acc)
     l1 = 3.0 * k0
     l2 = 3.0 * k0 * k0
     l3 = k0 * k0 * k0

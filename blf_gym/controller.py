@@ -20,10 +20,12 @@ Law signature (all arrays float64, C-contiguous; n joints)::
     ref      (3n,)       [q_d, qd_d, qdd_d]
     bnd      (6,)        [k_a, k_a', k_a'', k_b, k_b', k_b''] (same bound on every joint)
     nominal  (2n+1,)     the controller's nominal arm, ArmParams.pack()
-    model    (n^2+3n,)   the nominal model at the measured angles y, computed once per stage by
+    model    (2n^2+3n,)  the nominal model at the measured angles y, computed once per stage by
                          the kernel and shared by the law and the observer: [M(y) flat row-major
-                         (n^2), G(y) (n), cos of the absolute link angles (n), their sines (n)];
-                         pass its trig part to blf_gym.dynamics.coriolis_times_into for C(y, v) w
+                         (n^2), G(y) (n), cos of the absolute link angles (n), their sines (n),
+                         the lower Cholesky factor of M(y) flat row-major (n^2)]; pass its trig
+                         part to blf_gym.dynamics.coriolis_times_into for C(y, v) w, and its
+                         factor to cholesky_solve_factored for M(y)^-1 b
     gains    (G,)        the controller's own packed gains
     u_out    (n,)        write the commanded torque here, N m (finite, always)
     work     (WORK,)     scratch of length work_length(n); contents undefined on entry
@@ -49,7 +51,7 @@ from typing import Any, Callable
 import numpy as np
 from numba import njit
 
-from .dynamics import abs_trig_into, gravity_into, mass_matrix_into
+from .dynamics import abs_trig_into, cholesky_factor_into, gravity_into, mass_matrix_into
 from .params import ArmParams
 
 __all__ = [
@@ -75,19 +77,20 @@ def work_length(n):
 @njit(cache=True, error_model="numpy", inline="always")
 def model_length(n):
     """Length of the ``model`` array handed to a law or an observer for n joints."""
-    return n * n + 3 * n
+    return 2 * n * n + 3 * n
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def nominal_model_into(y, nominal, model, work):
-    """Fill ``model`` = [M(y), G(y), cos theta, sin theta] of the nominal arm (see above).
-    ``work`` needs ``n`` entries."""
+    """Fill ``model`` = [M(y), G(y), cos theta, sin theta, chol(M(y))] of the nominal arm (see
+    above). ``work`` needs ``n`` entries."""
     n = y.shape[0]
     nn = n * n
     trig = model[nn + n : nn + 3 * n]
     abs_trig_into(y, trig)
     mass_matrix_into(trig, nominal, model[:nn], work)
     gravity_into(trig, nominal, model[nn : nn + n], work)
+    cholesky_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])
 
 
 @njit(cache=True, error_model="numpy", inline="always")

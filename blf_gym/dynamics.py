@@ -39,6 +39,8 @@ __all__ = [
     "coriolis_times_into",
     "gravity_into",
     "wrench_torque_into",
+    "cholesky_factor_into",
+    "cholesky_solve_factored",
     "cholesky_solve_into",
     "mass_matrix",
     "coriolis_matrix",
@@ -156,9 +158,9 @@ def wrench_torque_into(trig, arm, wrench, out):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def cholesky_solve_into(M, b, out, L):
-    """Solve M x = b for symmetric positive definite M (flat row-major n*n); ``L`` (n*n) is scratch."""
-    n = b.shape[0]
+def cholesky_factor_into(M, L):
+    """Lower Cholesky factor of the SPD matrix M (flat row-major n*n) into ``L`` (n*n)."""
+    n = int(np.sqrt(M.shape[0]) + 0.5)
     for i in range(n):
         for j in range(i + 1):
             s = M[i * n + j]
@@ -168,6 +170,12 @@ def cholesky_solve_into(M, b, out, L):
                 L[i * n + i] = np.sqrt(s)
             else:
                 L[i * n + j] = s / L[j * n + j]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def cholesky_solve_factored(L, b, out):
+    """Solve L L^T x = b given the lower factor ``L`` (flat n*n) into ``out``."""
+    n = b.shape[0]
     for i in range(n):
         s = b[i]
         for k in range(i):
@@ -178,6 +186,13 @@ def cholesky_solve_into(M, b, out, L):
         for k in range(i + 1, n):
             s -= L[k * n + i] * out[k]
         out[i] = s / L[i * n + i]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def cholesky_solve_into(M, b, out, L):
+    """Solve M x = b for symmetric positive definite M (flat row-major n*n); ``L`` (n*n) is scratch."""
+    cholesky_factor_into(M, L)
+    cholesky_solve_factored(L, b, out)
 
 
 # ---------------------------------------------------------------------------------------------

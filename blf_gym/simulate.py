@@ -39,6 +39,8 @@ from .controller import (
 from .dynamics import (
     WORK_PER_LINK,
     abs_trig_into,
+    cholesky_factor_into,
+    cholesky_solve_factored,
     cholesky_solve_into,
     coriolis_times_into,
     gravity_into,
@@ -144,7 +146,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
     the law and the observer see the angles at every stage like Simulink's continuous blocks.
     ``_law`` and ``_observer`` are globals bound by :func:`_specialise`.
     """
-    n = y.shape[0]
+    n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nn = n * n
     arm = plant[: 2 * n + 1]
     o = 2 * n + 1
@@ -167,6 +169,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
     abs_trig_into(q, trig)
     mass_matrix_into(trig, arm, Mp, pw)
     gravity_into(trig, arm, g, pw)
+    cholesky_factor_into(Mp, Lp)
     # The nominal model at the measured angles, shared by the law and the observer. Without noise
     # y == q, and when the nominal arm is the true one (the paper's cases) it equals the plant's.
     if same_angles and same_arm:
@@ -176,6 +179,8 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
             model[nn + i] = g[i]
         for i in range(2 * n):
             model[nn + n + i] = trig[i]
+        for i in range(nn):
+            model[nn + 3 * n + i] = Lp[i]
     else:
         nominal_model_into(y, nominal, model, pw[10 * n :])
     _law(t, y, qd, xh, ref, bnd, nominal, model, lg, ulaw, wl)  # noqa: F821 (bound at specialisation)
@@ -203,7 +208,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
         rhs[i] = hu[i] - c[i] - g[i] - jf[i] - friction(qd[i], plant[o + _VISC], plant[o + _COUL],
                                                        plant[o + _PSI])
         dx[i] = qd[i]
-    cholesky_solve_into(Mp, rhs, dx[n : 2 * n], Lp)
+    cholesky_solve_factored(Lp, rhs, dx[n : 2 * n])
     _observer(y, xh, u, nominal, model, og, dx[2 * n :], wo)  # noqa: F821
 
 
@@ -388,8 +393,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
 def scratch_length(n: int) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
     nx = 5 * n
-    return (6 * nx + 5 * n + 6 + 5 * n + 2 * n * n + (n * n + 3 * n)
-            + (10 + WORK_PER_LINK) * n + n * n + 2 * (2 * n * n + 12 * n))
+    return (6 * nx + 5 * n + 6 + 5 * n + 2 * n * n + model_length(n)
+            + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -439,7 +444,7 @@ def _specialise(law, observer_rhs, n: int):
 
         deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
         tag = f"{_ident(law)}__{_ident(observer_rhs)}__{_source_digest(*deps)}"
-        stage = _clone(_stage_template, f"stage__{tag}", {"_law": law, "_observer": observer_rhs},
+        stage = _clone(_stage_template, f"stage__n{n}__{tag}", {"_law": law, "_observer": observer_rhs, "_N": n},
                        inline="always")
         kernel = _clone(
             _advance_template, f"advance__n{n}__{tag}",
