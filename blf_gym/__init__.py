@@ -1,13 +1,34 @@
 """blf-gym: the uncertain 3-DOF planar arm of Tran et al. (Electronics 2020, 9, 1355) with
 time-varying output constraints, as a closed-loop simulator and a Gymnasium environment.
 
+Importing the package registers ``PlanarBLF-v0`` (plain: the action is the torque) and
+``PlanarBLFResidual-v0`` (residual over the LESO + barrier-Lyapunov law), both with a native
+vector entry point for ``gym.make_vec``.
+
 Modules: :mod:`~blf_gym.params` (parameters and presets), :mod:`~blf_gym.dynamics`,
 :mod:`~blf_gym.uncertainty`, :mod:`~blf_gym.reference`, :mod:`~blf_gym.bounds`,
 :mod:`~blf_gym.controller` (the plug-in protocol), :mod:`~blf_gym.simulate` (the compiled closed
-loop), :mod:`~blf_gym.metrics`.
+loop), :mod:`~blf_gym.metrics`, :mod:`~blf_gym.scenarios`, :mod:`~blf_gym.env`,
+:mod:`~blf_gym.vector`.
 """
+
+from gymnasium.envs.registration import register, registry
 
 from .params import PRESETS, Scenario, preset
 
 __version__ = "0.1.0"
 __all__ = ["PRESETS", "Scenario", "preset", "__version__"]
+
+if "PlanarBLF-v0" not in registry:
+    register(
+        id="PlanarBLF-v0",
+        entry_point="blf_gym.env:PlanarBLFEnv",
+        vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
+    )
+if "PlanarBLFResidual-v0" not in registry:
+    register(
+        id="PlanarBLFResidual-v0",
+        entry_point="blf_gym.env:PlanarBLFEnv",
+        vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
+        kwargs={"controller": "proposed"},
+    )

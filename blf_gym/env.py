@@ -1,0 +1,190 @@
+"""``PlanarBLF-v0``: the Gymnasium environment."""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from .controller import InnerController
+from .core import EnvCore, RewardWeights, observation_layout
+from .params import Scenario
+
+__all__ = ["PlanarBLFEnv"]
+
+
+def _obs_table(privileged: bool) -> str:
+    rows = observation_layout(3, privileged)
+    lines = ["    | index | observation | unit | min | max |", "    |---|---|---|---|---|"]
+    for i, (name, unit, lo, hi) in enumerate(rows):
+        lines.append(f"    | {i} | {name} | {unit} | {lo:g} | {hi:g} |")
+    return "\n".join(lines)
+
+
+class PlanarBLFEnv(gym.Env):
+    __doc__ = f"""Track a Cartesian circle with the uncertain 3-DOF planar arm of Tran et al.
+    (Electronics 2020, 9, 1355) while the joint errors stay inside time-varying bounds.
+
+    ## Description
+    The arm (point masses, friction, an asymmetric input dead-zone, an external force switched on
+    at 20 s) is simulated with ODE3 at 0.1 ms by a compiled kernel; a linear extended state
+    observer (LESO, k0 = 200) runs on the measured joint angles inside the env, so the agent
+    gets velocity and disturbance estimates but never the true state (unless ``privileged``).
+    Every agent step covers ``control_period`` (10 ms by default: 100 integration steps).
+
+    * **Plain mode** (``PlanarBLF-v0``, ``controller=None``): the action is the torque,
+      ``u = max_torque * a``.
+    * **Residual mode** (``PlanarBLFResidual-v0`` or ``controller="proposed" | "lesobc" | "bc"``):
+      the inner controller runs at every integration stage and the applied torque is
+      ``u = u_law + residual_scale * a``, before the actuator limit and the dead-zone. The
+      observer, observations, info and metrics all use that applied u.
+
+    ## Action Space
+    ``Box(-1, 1, (3,), float32)``, one entry per joint. Non-finite actions or a wrong shape raise
+    ``ValueError``; finite actions are clipped to [-1, 1].
+
+    ## Observation Space
+    ``Box(low, high, (31,), float32)`` (37 with ``privileged=True``). Unbounded quantities are
+    squashed as c tanh(x / c) so every observation lies inside the box:
+
+{_obs_table(True)}
+
+    Entries 31-36 exist only with ``privileged=True``. The measured angles include the optional
+    noise (``angle_noise_std``, a fresh draw for the observation).
+
+    ## Rewards
+    Per agent step, with E the mean over the step's 1 ms samples and the joints of
+    (e1 / bound)^2 (the error normalized by the bound on its side, <= 1 inside the bounds) and U
+    the mean of (u / max_torque)^2::
+
+        r = alive - tracking * E - torque * U - violation * [the step ended the episode]
+
+    Defaults ``tracking = 1``, ``torque = 0.01``, ``alive = tracking + torque``,
+    ``violation = 100`` (:class:`blf_gym.core.RewardWeights`). Since ``alive >= tracking +
+    torque``, every step inside the bounds earns r >= 0, so ending an episode by a violation never
+    pays better than staying inside. The terms are returned in ``info["reward_info"]``.
+
+    ## Starting State
+    q(0) = q_d(0) + initial_error (zero in the paper presets), qd(0) = 0; observer
+    x_hat(0) = [q(0), 0, 0].
+
+    ## Episode End
+    * **Termination**: any joint error leaves (-k_b(t), k_a(t)) at any integration step
+      (``info["termination_reason"] == "violation"``; off with ``terminate_on_violation=False``,
+      which keeps running and counts violations in ``info["cost"]`` and
+      ``info["violating_samples"]``); or the simulation diverges (``"diverged"``: non-finite or
+      numerically unstable state, reported with ``info["diverged_message"]``; the observation
+      is the last finite state, never NaN).
+    * **Truncation**: at the scenario's duration in simulated time (30 s by default); no
+      ``max_episode_steps``, so a changed ``control_period`` keeps the duration.
+
+    ## Info
+    ``time`` (s), ``e1`` (rad), ``k_a``, ``k_b`` (rad), ``g_upper = e1 - k_a`` and
+    ``g_lower = -k_b - e1`` (constraint margins, <= 0 is safe), ``cost`` (1.0 if any integration
+    step of this agent step broke a bound), ``violating_samples`` (1 ms samples), ``u``,
+    ``u_law``, ``u_residual`` (N m), ``saturated``, ``x3`` and ``x3_hat`` (true and estimated
+    lumped disturbance against the nominal model, rad/s^2, at the last 1 ms sample),
+    ``termination_reason``, ``truncation_reason``, ``reward_info``.
+
+    ## Arguments
+    ```python
+    import gymnasium as gym
+    import blf_gym
+    env = gym.make("PlanarBLF-v0", scenario="paper-0.5hz", control_period=0.005)
+    env = gym.make("PlanarBLFResidual-v0", controller="proposed", residual_scale=2.0)
+    env = gym.make("PlanarBLF-v0", scenario="randomized")          # the randomized suite
+    obs, info = env.reset(seed=0, options={{"payload": 0.15}})       # per-episode variations
+    ```
+    ``scenario`` ("paper-0.1hz", "paper-0.5hz", "randomized" or a ``Scenario``),
+    ``controller`` (None, "bc", "lesobc", "proposed" or an ``InnerController``),
+    ``residual_scale`` (N m, 2.0), ``control_period`` (s, 0.01; a multiple of 1 ms),
+    ``privileged`` (False), ``terminate_on_violation`` (True), ``angle_noise_std`` (rad),
+    ``duration`` (s), ``max_torque`` (N m, 150), ``dt`` (s, 1e-4), ``variations`` (dict of
+    :data:`blf_gym.scenarios.VARIATIONS`), ``reward_weights``, ``render_mode``
+    ("rgb_array" or "human"). ``reset(options=...)`` takes the same variations per episode.
+
+    ## Version History
+    * v0: initial release.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 25}
+
+    def __init__(
+        self,
+        scenario: "str | Scenario" = "paper-0.1hz",
+        controller: "str | InnerController | None" = None,
+        residual_scale: float = 2.0,
+        control_period: float = 0.01,
+        privileged: bool = False,
+        terminate_on_violation: bool = True,
+        angle_noise_std: float | None = None,
+        duration: float | None = None,
+        max_torque: float | None = None,
+        dt: float | None = None,
+        variations: Mapping[str, Any] | None = None,
+        reward_weights: RewardWeights | Mapping[str, float] | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
+                             f"got {render_mode!r}")
+        self.core = EnvCore(
+            1, scenario=scenario, controller=controller, residual_scale=residual_scale,
+            control_period=control_period, privileged=privileged,
+            terminate_on_violation=terminate_on_violation, angle_noise_std=angle_noise_std,
+            duration=duration, max_torque=max_torque, dt=dt, variations=variations,
+            reward_weights=reward_weights, threads=1,
+        )
+        self.render_mode = render_mode
+        n = self.core.n
+        self.action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
+        self.observation_space = spaces.Box(self.core.obs_low, self.core.obs_high, dtype=np.float32)
+        self._renderer = None
+        self._path: list[np.ndarray] = []
+        self._needs_reset = True
+
+    @property
+    def scenario(self) -> Scenario:
+        """The current episode's scenario."""
+        return self.core.scenarios[0]
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        super().reset(seed=seed)
+        self.core.rngs[0] = self.np_random
+        self.core.reset_envs([0], options)
+        info: dict[str, Any] = {}
+        obs = self.core.observe([info])[0]
+        info["scenario"] = self.scenario
+        self._path = []
+        self._needs_reset = False
+        if self.render_mode == "human":
+            self.render()
+        return obs, info
+
+    def step(self, action):
+        if self._needs_reset:
+            raise RuntimeError("call reset() before step(), and again after an episode ends")
+        obs, rew, term, trunc, infos = self.core.step(action)
+        if term[0] or trunc[0]:
+            self._needs_reset = True
+        if self.render_mode == "human":
+            self.render()
+        return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), infos[0]
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        from .render import ArmRenderer
+
+        if self._renderer is None:
+            self._renderer = ArmRenderer(self.scenario, human=self.render_mode == "human")
+        frame = self._renderer.draw(self.core, 0, self._path)
+        return frame if self.render_mode == "rgb_array" else None
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None

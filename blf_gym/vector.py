@@ -1,0 +1,108 @@
+"""``PlanarBLFVectorEnv``: N arms in one compiled kernel call (``gym.make_vec``'s vector entry point).
+
+The arms are independent episodes of :class:`~blf_gym.env.PlanarBLFEnv`, computed by the same
+:class:`~blf_gym.core.EnvCore` and the same kernel, split over threads. Arm i reset with seed
+``s + i`` is bit-identical to a single env reset with that seed. Autoreset is same-step: when an
+arm ends, ``infos["final_obs"]`` and ``infos["final_info"]`` hold its last observation and info,
+and the returned observation is already the first of its next episode.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from gymnasium.vector import AutoresetMode, VectorEnv
+from gymnasium.vector.utils import batch_space
+
+from .controller import InnerController
+from .core import EnvCore, RewardWeights
+from .params import Scenario
+
+__all__ = ["PlanarBLFVectorEnv"]
+
+
+class PlanarBLFVectorEnv(VectorEnv):
+    """Batched ``PlanarBLF-v0``; keyword arguments are those of :class:`~blf_gym.env.PlanarBLFEnv`
+    plus ``num_envs`` and ``threads`` (default: the number of CPUs)."""
+
+    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+
+    def __init__(
+        self,
+        num_envs: int = 1,
+        scenario: "str | Scenario" = "paper-0.1hz",
+        controller: "str | InnerController | None" = None,
+        residual_scale: float = 2.0,
+        control_period: float = 0.01,
+        privileged: bool = False,
+        terminate_on_violation: bool = True,
+        angle_noise_std: float | None = None,
+        duration: float | None = None,
+        max_torque: float | None = None,
+        dt: float | None = None,
+        variations: Mapping[str, Any] | None = None,
+        reward_weights: RewardWeights | Mapping[str, float] | None = None,
+        render_mode: str | None = None,
+        threads: int | None = None,
+    ) -> None:
+        if render_mode is not None:
+            raise ValueError("PlanarBLFVectorEnv does not render; use the single env for pictures")
+        self.core = EnvCore(
+            num_envs, scenario=scenario, controller=controller, residual_scale=residual_scale,
+            control_period=control_period, privileged=privileged,
+            terminate_on_violation=terminate_on_violation, angle_noise_std=angle_noise_std,
+            duration=duration, max_torque=max_torque, dt=dt, variations=variations,
+            reward_weights=reward_weights, threads=threads,
+        )
+        self.num_envs = self.core.num_envs
+        n = self.core.n
+        self.single_action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
+        self.single_observation_space = spaces.Box(self.core.obs_low, self.core.obs_high, dtype=np.float32)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.render_mode = None
+        self._started = False
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
+        """Reset every arm. ``seed`` s seeds arm i with s + i (or give one seed per arm)."""
+        N = self.num_envs
+        if seed is None:
+            seeds: list[int | None] = [None] * N
+        elif isinstance(seed, int):
+            seeds = [seed + i for i in range(N)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != N:
+                raise ValueError(f"reset(seed=list) needs {N} seeds, got {len(seeds)}")
+        for i, s in enumerate(seeds):
+            if s is not None or not self._started:
+                self.core.rngs[i], _ = seeding.np_random(s)
+        self._started = True
+        self.core.reset_envs(range(N), options)
+        infos_list: list[dict[str, Any]] = [{} for _ in range(N)]
+        obs = self.core.observe(infos_list)
+        infos: dict[str, Any] = {}
+        for i, info in enumerate(infos_list):
+            infos = self._add_info(infos, info, i)
+        return obs, infos
+
+    def step(self, actions):
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        obs, rew, term, trunc, infos_list = self.core.step(actions)
+        done = np.flatnonzero(term | trunc)
+        infos: dict[str, Any] = {}
+        if done.size:
+            final_obs = obs.copy()
+            for i in done:
+                infos = self._add_info(infos, {"final_obs": final_obs[i], "final_info": infos_list[i]}, int(i))
+            which = [int(i) for i in done]
+            self.core.reset_envs(which)
+            new_obs = self.core.observe(None, which=which)
+            obs[done] = new_obs[done]
+        for i, info in enumerate(infos_list):
+            infos = self._add_info(infos, info, i)
+        return obs, rew, term, trunc, infos
