@@ -14,15 +14,28 @@ from numba import njit
 
 from .bounds import bounds_into
 from .controller import NO_CONTROLLER, InnerController, make_controller
-from .metrics import violation_mask
 from .params import Scenario
 from .reference import reference_into
 from .scenarios import apply_variations, resolve_scenario, sample_suite
-from .simulate import CHANNELS, ClosedLoop, divergence_message
+from .simulate import (
+    ST_DIVERGED,
+    ST_SAT_STEPS,
+    ST_VIOL_SAMPLES,
+    ST_VIOL_STEPS,
+    SUM_EN2,
+    SUM_SAMPLES,
+    SUM_UN2,
+    ClosedLoop,
+    divergence_message,
+)
 
 __all__ = ["RewardWeights", "EnvCore", "observation_layout"]
 
-_CH = {name: i for i, name in enumerate(CHANNELS)}
+
+
+def _scalar(v: Any) -> Any:
+    """numpy scalars to Python scalars; arrays stay arrays."""
+    return v.item() if isinstance(v, np.generic) else v
 
 
 @dataclass(frozen=True)
@@ -87,18 +100,50 @@ def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, 
 
 
 @njit(cache=True, error_model="numpy")
-def _refs_and_bounds(ts, rp, bp, plant, out_ref, out_bnd):
-    for b in range(ts.shape[0]):
-        reference_into(ts[b], rp[b], plant[b], out_ref[b])
-        bounds_into(ts[b], bp[b], out_bnd[b])
-
-
-def _squash(x: np.ndarray, c: float) -> np.ndarray:
+def _sq(x, c):
     return c * np.tanh(x / c)
 
 
-def _normalized_error(e: np.ndarray, ka: np.ndarray, kb: np.ndarray) -> np.ndarray:
-    return np.where(e >= 0.0, e / ka, e / kb)
+@njit(cache=True, error_model="numpy")
+def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, out, ref, bnd):
+    """Fill ``out`` (N, obs_dim) with the layout of :func:`observation_layout`, and ``ref`` /
+    ``bnd`` with the reference and bounds at ``t``."""
+    N = X.shape[0]
+    n = last_x3.shape[1]
+    for b in range(N):
+        reference_into(t[b], rp[b], plant[b], ref[b])
+        bounds_into(t[b], bp[b], bnd[b])
+        ka = bnd[b, 0]
+        kb = bnd[b, 3]
+        o = out[b]
+        for j in range(n):
+            q = X[b, j]
+            e = q - ref[b, j]
+            o[j] = min(max(q + noise[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
+            o[n + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
+            o[2 * n + j] = _sq(ref[b, n + j], _SQ_VEL)
+            o[3 * n + j] = _sq(ref[b, 2 * n + j], _SQ_ACC_REF)
+            en = e / ka if e >= 0.0 else e / kb
+            o[4 * n + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
+        k = 5 * n
+        o[k] = ka
+        o[k + 1] = kb
+        o[k + 2] = bnd[b, 1]
+        o[k + 3] = bnd[b, 4]
+        ph = 2.0 * np.pi * rp[b, 0] * t[b]
+        o[k + 4] = np.sin(ph)
+        o[k + 5] = np.cos(ph)
+        o[k + 6] = min(max(t[b] / dur[b], 0.0), 1.0)
+        k += 7
+        for j in range(n):
+            o[k + j] = min(max(last[b, j] / umax[b], -1.0), 1.0)
+            o[k + n + j] = _sq(X[b, 3 * n + j], _SQ_VEL)
+            o[k + 2 * n + j] = _sq(X[b, 4 * n + j], _SQ_DIST)
+        if privileged:
+            k += 3 * n
+            for j in range(n):
+                o[k + j] = _sq(X[b, n + j], _SQ_VEL)
+                o[k + n + j] = _sq(last_x3[b, j], _SQ_DIST)
 
 
 class EnvCore:
@@ -173,6 +218,9 @@ class EnvCore:
         self.done = np.zeros(N, dtype=bool)
         self._ref = np.zeros((N, 3 * n))
         self._bnd = np.zeros((N, 6))
+        self._obs_noise = np.zeros((N, n))
+        self._durations = np.zeros(N)
+        self._umax = np.zeros(N)
 
     # ------------------------------------------------------------------ reset
     def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
@@ -192,6 +240,8 @@ class EnvCore:
         scs = [self.scenario_for(self.rngs[i], options) for i in idx]
         for i, sc in zip(idx, scs):
             self.scenarios[i] = sc
+            self._durations[i] = sc.sim.duration
+            self._umax[i] = sc.sim.max_torque
         self.loop.set_scenarios(scs, which=list(idx))
         for i in idx:
             self.steps[i] = 0
@@ -212,11 +262,12 @@ class EnvCore:
             raise ValueError(f"action must be finite, got {a.tolist()}")
         return np.clip(a, -1.0, 1.0)
 
-    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, list[dict[str, Any]]]:
+    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One agent step of every arm; returns (obs, rewards, terminated, truncated, info) with
+        ``info`` a dict of per-arm arrays (see :meth:`info_row` for one arm's plain dict)."""
         a = self.check_actions(actions)
         N, n = self.num_envs, self.n
-        scale = self.residual_scale if self.residual else np.array(
-            [sc.sim.max_torque for sc in self.scenarios])[:, None]
+        scale = self.residual_scale if self.residual else self._umax[:, None]
         residual = a * scale
         noise = None
         stds = np.array([sc.angle_noise_std for sc in self.scenarios])
@@ -226,117 +277,90 @@ class EnvCore:
             noise = np.zeros((N, self.steps_per_period, n))
             for i in np.flatnonzero(stds > 0):
                 noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * stds[i]
-        rec, nrec, status = self.loop.advance(self.steps_per_period, residual=residual, noise=noise,
-                                              terminate=self.terminate_on_violation,
-                                              record_samples=self.samples_per_period)
+        _, _, status = self.loop.advance(self.steps_per_period, residual=residual, noise=noise,
+                                         terminate=self.terminate_on_violation, record_samples=0)
+        sums = self.loop.sums
         self.steps += 1
-        rewards = np.zeros(N)
-        terminated = np.zeros(N, dtype=bool)
-        truncated = np.zeros(N, dtype=bool)
-        infos: list[dict[str, Any]] = []
         w = self.weights
-        for i in range(N):
-            r = rec[i, : nrec[i]]
-            info: dict[str, Any] = {}
-            if nrec[i] > 0:
-                e = r[:, _CH["e1"]]
-                ka = r[:, _CH["k_a"]]
-                kb = r[:, _CH["k_b"]]
-                u = r[:, _CH["u"]]
-                tracking = float(np.mean(_normalized_error(e, ka, kb) ** 2))
-                torque = float(np.mean((u / self.scenarios[i].sim.max_torque) ** 2))
-                viol_samples = int(violation_mask(e, ka, kb).any(axis=1).sum())
-                self.last_x3[i] = r[-1, _CH["x3"]]
-                last = r[-1]
+        samples = np.maximum(sums[:, SUM_SAMPLES], 1.0)
+        tracking = sums[:, SUM_EN2] / (samples * n)
+        torque = sums[:, SUM_UN2] / (samples * n)
+        diverged = status[:, ST_DIVERGED]
+        violated = status[:, ST_VIOL_STEPS] > 0
+        terminated = (diverged != 0) | (violated & self.terminate_on_violation)
+        penalty = np.where(terminated, w.violation, 0.0)
+        rewards = w.alive - w.tracking * tracking - w.torque * torque - penalty
+        t_end = self.loop.time
+        truncated = ~terminated & (t_end >= self._durations - 1e-12)
+        reason = np.full(N, None, dtype=object)
+        reason[violated & self.terminate_on_violation] = "violation"
+        reason[diverged != 0] = "diverged"
+        last = self.loop.last
+        self.last_x3[:] = last[:, 3 * n :]
+        info: dict[str, Any] = {
+            "cost": violated.astype(np.float64),
+            "violating_samples": status[:, ST_VIOL_SAMPLES].copy(),
+            "u": last[:, :n].copy(),
+            "u_law": last[:, n : 2 * n].copy(),
+            "u_residual": residual,
+            "saturated": status[:, ST_SAT_STEPS] > 0,
+            "x3": last[:, 3 * n :].copy(),
+            "x3_hat": self.loop.X[:, 4 * n :].copy(),
+            "termination_reason": reason,
+            "truncation_reason": np.where(truncated, "time_limit", None).astype(object),
+            "reward_info": {"alive": np.full(N, float(w.alive)), "tracking": -w.tracking * tracking,
+                            "torque": -w.torque * torque, "violation": -penalty},
+        }
+        if np.any(diverged):
+            info["diverged_message"] = np.array(
+                [divergence_message(int(d), float(t), self.sim.dt) or None for d, t in zip(diverged, t_end)],
+                dtype=object)
+        self.done[:] = terminated | truncated
+        obs = self.observe(info)
+        return obs, rewards, terminated, truncated, info
+
+    @staticmethod
+    def info_row(info: dict[str, Any], i: int) -> dict[str, Any]:
+        """Arm i's info as a plain dict (what the single env returns)."""
+        out: dict[str, Any] = {}
+        for k, v in info.items():
+            if isinstance(v, dict):
+                out[k] = {kk: _scalar(vv[i]) for kk, vv in v.items()}
             else:
-                tracking = torque = 0.0
-                viol_samples = 0
-                last = None
-            diverged = int(status[i, 1])
-            violated = int(status[i, 2]) > 0
-            reason = None
-            if diverged:
-                reason = "diverged"
-            elif violated and self.terminate_on_violation:
-                reason = "violation"
-            terminated[i] = reason is not None
-            penalty = w.violation if terminated[i] else 0.0
-            rewards[i] = w.alive - w.tracking * tracking - w.torque * torque - penalty
-            t_end = float(self.loop.time[i])
-            truncated[i] = (not terminated[i]) and t_end >= self.scenarios[i].sim.duration - 1e-12
-            info["reward_info"] = {"alive": w.alive, "tracking": -w.tracking * tracking,
-                                   "torque": -w.torque * torque, "violation": -penalty}
-            info["cost"] = 1.0 if violated else 0.0
-            info["violating_samples"] = viol_samples
-            info["termination_reason"] = reason
-            if diverged:
-                info["diverged_message"] = divergence_message(diverged, t_end, self.sim.dt)
-            if truncated[i]:
-                info["truncation_reason"] = "time_limit"
-            if last is not None:
-                info["u"] = last[_CH["u"]].copy()
-                info["u_law"] = last[_CH["u_law"]].copy()
-                info["u_residual"] = residual[i].copy()
-                info["saturated"] = bool(np.any(r[:, _CH["saturated"]] > 0))
-                info["x3"] = last[_CH["x3"]].copy()
-                info["x3_hat"] = last[_CH["x3_hat"]].copy()
-            infos.append(info)
-            self.done[i] = terminated[i] or truncated[i]
-        obs = self.observe(infos)
-        return obs, rewards, terminated, truncated, infos
+                out[k] = _scalar(v[i])
+        return out
 
     # ------------------------------------------------------------------ observation
-    def observe(self, infos: list[dict[str, Any]] | None = None,
+    def observe(self, info: dict[str, Any] | None = None,
                 which: Sequence[int] | None = None) -> np.ndarray:
-        """Observations (N, obs_dim) float32 at the arms' current time; fills the state part of
-        ``infos`` (time, error, bounds, margins) when given. Measurement noise is drawn only for
-        the arms in ``which`` (default all); the other rows are for discarding."""
+        """Observations (N, obs_dim) float32 at the arms' current time; adds the state part of
+        ``info`` (time, error, bounds, margins, as per-arm arrays) when given. Measurement noise is
+        drawn only for the arms in ``which`` (default all); the other rows are for discarding."""
         N, n = self.num_envs, self.n
         X = self.loop.X
         t = self.loop.time.astype(np.float64)
         b = self.loop._batch
-        _refs_and_bounds(t, b.ref, b.bnd, b.plant, self._ref, self._bnd)
-        ref, bnd = self._ref, self._bnd
-        q = X[:, :n]
-        noise = np.zeros((N, n))
+        noise = self._obs_noise
+        noise[:] = 0.0
         for i in range(N) if which is None else which:
             std = self.scenarios[i].angle_noise_std
             if std > 0:
                 noise[i] = self.rngs[i].standard_normal(n) * std
-        y = q + noise
-        e = q - ref[:, :n]
-        ka = bnd[:, 0:1]
-        kb = bnd[:, 3:4]
-        freq = b.ref[:, 0]
-        dur = np.array([sc.sim.duration for sc in self.scenarios])
-        umax = np.array([sc.sim.max_torque for sc in self.scenarios])[:, None]
-        parts = [
-            np.clip(y, -_ANGLE_CLIP, _ANGLE_CLIP),
-            np.clip(ref[:, :n], -_ANGLE_CLIP, _ANGLE_CLIP),
-            _squash(ref[:, n : 2 * n], _SQ_VEL),
-            _squash(ref[:, 2 * n :], _SQ_ACC_REF),
-            np.clip(_normalized_error(e, ka, kb), -_ERR_CLIP, _ERR_CLIP),
-            bnd[:, [0, 3, 1, 4]],
-            np.sin(2 * np.pi * freq * t)[:, None],
-            np.cos(2 * np.pi * freq * t)[:, None],
-            np.clip(t / dur, 0.0, 1.0)[:, None],
-            np.clip(self.loop.last[:, :n] / umax, -1.0, 1.0),
-            _squash(X[:, 3 * n : 4 * n], _SQ_VEL),
-            _squash(X[:, 4 * n : 5 * n], _SQ_DIST),
-        ]
-        if self.privileged:
-            parts += [_squash(X[:, n : 2 * n], _SQ_VEL), _squash(self.last_x3, _SQ_DIST)]
-        obs = np.concatenate(parts, axis=1).astype(np.float32)
-        np.clip(obs, self.obs_low, self.obs_high, out=obs)
-        if infos is not None:
-            for i, info in enumerate(infos):
-                info["time"] = float(t[i])
-                info["e1"] = e[i].copy()
-                info["k_a"] = float(bnd[i, 0])
-                info["k_b"] = float(bnd[i, 3])
-                # g(t, q) <= 0 convention: positive means the bound is broken
-                info["g_upper"] = e[i] - bnd[i, 0]
-                info["g_lower"] = -bnd[i, 3] - e[i]
-                if self.privileged:
-                    info["qd"] = X[i, n : 2 * n].copy()
+        obs64 = np.empty((N, self.obs_dim))
+        _observe_batch(X, t, b.ref, b.bnd, b.plant, self.loop.last, self.last_x3, noise,
+                       self._durations, self._umax, self.privileged, obs64, self._ref, self._bnd)
+        obs = obs64.astype(np.float32)
+        np.clip(obs, self.obs_low, self.obs_high, out=obs)  # float32 rounding at the box edges
+        bnd = self._bnd
+        e = X[:, :n] - self._ref[:, :n]
+        if info is not None:
+            info["time"] = t.copy()
+            info["e1"] = e
+            info["k_a"] = bnd[:, 0].copy()
+            info["k_b"] = bnd[:, 3].copy()
+            # g(t, q) <= 0 convention: positive means the bound is broken
+            info["g_upper"] = e - bnd[:, 0:1]
+            info["g_lower"] = -bnd[:, 3:4] - e
+            if self.privileged:
+                info["qd"] = X[:, n : 2 * n].copy()
         return obs

@@ -154,8 +154,9 @@ class PlanarBLFEnv(gym.Env):
         super().reset(seed=seed)
         self.core.rngs[0] = self.np_random
         self.core.reset_envs([0], options)
-        info: dict[str, Any] = {}
-        obs = self.core.observe([info])[0]
+        batch: dict[str, Any] = {}
+        obs = self.core.observe(batch)[0]
+        info = self.core.info_row(batch, 0)
         info["scenario"] = self.scenario
         self._path = []
         self._needs_reset = False
@@ -166,12 +167,13 @@ class PlanarBLFEnv(gym.Env):
     def step(self, action):
         if self._needs_reset:
             raise RuntimeError("call reset() before step(), and again after an episode ends")
-        obs, rew, term, trunc, infos = self.core.step(action)
+        obs, rew, term, trunc, batch = self.core.step(action)
+        info = self.core.info_row(batch, 0)
         if term[0] or trunc[0]:
             self._needs_reset = True
         if self.render_mode == "human":
             self.render()
-        return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), infos[0]
+        return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
 
     def render(self):
         if self.render_mode is None:

@@ -73,8 +73,11 @@ N_CHANNELS = len(CHANNELS)
  _UNSTABLE_STEPS) = range(16)
 
 # status columns
-ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS = range(5)
-N_STATUS = 5
+ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = range(6)
+N_STATUS = 6
+# sums columns: ODE3 error-estimate maximum, sum over samples and joints of (e1/bound)^2 and of
+# (u/max_torque)^2, number of 1 ms samples
+SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES = range(4)
 
 
 @njit(cache=True, error_model="numpy")
@@ -114,10 +117,9 @@ def _violates(e_or_q, ref, bnd, n):
 
 
 @njit(cache=True, error_model="numpy")
-def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, dx, nominal, x3, M, L, work):
+def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3):
     """Write one 1 ms sample (the channels of CHANNELS) into ``r`` (channels, n)."""
     n = y.shape[0]
-    _lumped_true(x[:n], x[n : 2 * n], dx[n : 2 * n], u, nominal, x3, M, L, work)
     for i in range(n):
         r[0, i] = t
         r[1, i] = x[i]
@@ -213,7 +215,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
 
 
 def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
-                      noise, terminate, rec, nrec, status, last, scratch, errstat):
+                      noise, terminate, rec, nrec, status, last, scratch, sums):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
 
     Stops an arm early on divergence (state restored to the last finite one) or, when
@@ -280,6 +282,11 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         unstable_steps = plant_b[2 * n + 1 + _UNSTABLE_STEPS]
         err_max = 0.0
         err_run = 0
+        umax = plant_b[2 * n + 1 + _UMAX]
+        sum_en2 = 0.0
+        sum_un2 = 0.0
+        n_samples = 0
+        viol_samples = 0
         k0 = ksteps[b]
         steps = 0
         viol = 0
@@ -348,10 +355,25 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     if satf[i] > 0.0:
                         sat_steps += 1
                         break
-                if k % sps == 0 and nrec[b] < rec.shape[1]:
-                    _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, K0, nom_b, x3,
-                            Mp, Lp, pw)
-                    nrec[b] += 1
+                if k % sps == 0:
+                    # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
+                    _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_b, x3, Mp, Lp, pw)
+                    bad = False
+                    for i in range(n):
+                        e = x[i] - ref[i]
+                        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
+                        sum_en2 += en * en
+                        un = u[i] / umax
+                        sum_un2 += un * un
+                        if e >= bnd[0] or e <= -bnd[3]:
+                            bad = True
+                        last[b, 3 * n + i] = x3[i]
+                    n_samples += 1
+                    if bad:
+                        viol_samples += 1
+                    if nrec[b] < rec.shape[1]:
+                        _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, x3)
+                        nrec[b] += 1
                 for i in range(n):
                     last[b, i] = u[i]
                     last[b, n + i] = ulaw[i]
@@ -387,7 +409,11 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         status[b, 2] = viol
         status[b, 3] = first_viol
         status[b, 4] = sat_steps
-        errstat[b] = err_max
+        status[b, 5] = viol_samples
+        sums[b, 0] = err_max
+        sums[b, 1] = sum_en2
+        sums[b, 2] = sum_un2
+        sums[b, 3] = n_samples
 
 
 def scratch_length(n: int) -> int:
@@ -553,7 +579,7 @@ class ClosedLoop:
         self.N = len(scenarios)
         self.X = np.zeros((self.N, 5 * self.n))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
-        self.last = np.zeros((self.N, 3 * self.n))
+        self.last = np.zeros((self.N, 4 * self.n))
         self._scratch = np.zeros((self.N, scratch_length(self.n)))
         self.set_scenarios(scenarios)
 
@@ -618,8 +644,11 @@ class ClosedLoop:
         ``residual`` (N, n) N m is added to the law's torque over the whole call; ``noise``
         (N, n_steps, n) rad is added to the measured angles step by step. Returns
         ``(rec, nrec, status)``: recorded samples (N, S, channels, n), how many per arm, and the
-        status columns [steps, diverged, violating steps, first violating step or -1, saturated
-        steps].
+        status columns [steps, diverged (0, 1 non-finite, 2 unstable), violating steps, first
+        violating step or -1, saturated steps, violating 1 ms samples]. ``self.sums`` then holds
+        per arm [max ODE3 error estimate, sum of (e1/bound)^2, sum of (u/max_torque)^2, samples]
+        over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated, x3] of the last
+        step and sample.
         """
         N, n = self.N, self.n
         res = np.zeros((N, n)) if residual is None else np.ascontiguousarray(residual, dtype=np.float64)
@@ -634,9 +663,9 @@ class ClosedLoop:
         nrec = np.zeros(N, dtype=np.int64)
         status = np.zeros((N, N_STATUS), dtype=np.int64)
         b = self._batch
-        errstat = np.zeros(N)
+        sums = np.zeros((N, 4))
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
-                  res, nz, rec, nrec, status, self.last, self._scratch, errstat)
+                  res, nz, rec, nrec, status, self.last, self._scratch, sums)
 
         def run(lo: int, hi: int) -> None:
             a = [arr[lo:hi] for arr in arrays]
@@ -647,7 +676,7 @@ class ClosedLoop:
         threads = min(self.threads, N)
         if threads <= 1:
             run(0, N)
-            self.error_estimate = errstat
+            self.sums = sums
             return rec, nrec, status
         else:
             # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and
@@ -660,7 +689,7 @@ class ClosedLoop:
             futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
             for f in futures:
                 f.result()
-        self.error_estimate = errstat
+        self.sums = sums
         return rec, nrec, status
 
 

@@ -24,6 +24,15 @@ from .params import Scenario
 __all__ = ["PlanarBLFVectorEnv"]
 
 
+def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
+    """Gymnasium's vector-info convention: each key's per-arm array plus a ``_key`` mask."""
+    out: dict[str, Any] = {}
+    for k, v in info.items():
+        out[k] = _with_masks(v, mask) if isinstance(v, dict) else v
+        out[f"_{k}"] = mask.copy()
+    return out
+
+
 class PlanarBLFVectorEnv(VectorEnv):
     """Batched ``PlanarBLF-v0``; keyword arguments are those of :class:`~blf_gym.env.PlanarBLFEnv`
     plus ``num_envs`` and ``threads`` (default: the number of CPUs)."""
@@ -82,27 +91,27 @@ class PlanarBLFVectorEnv(VectorEnv):
                 self.core.rngs[i], _ = seeding.np_random(s)
         self._started = True
         self.core.reset_envs(range(N), options)
-        infos_list: list[dict[str, Any]] = [{} for _ in range(N)]
-        obs = self.core.observe(infos_list)
-        infos: dict[str, Any] = {}
-        for i, info in enumerate(infos_list):
-            infos = self._add_info(infos, info, i)
-        return obs, infos
+        info: dict[str, Any] = {}
+        obs = self.core.observe(info)
+        return obs, _with_masks(info, np.ones(N, dtype=bool))
 
     def step(self, actions):
         if not self._started:
             raise RuntimeError("call reset() before step()")
-        obs, rew, term, trunc, infos_list = self.core.step(actions)
-        done = np.flatnonzero(term | trunc)
-        infos: dict[str, Any] = {}
-        if done.size:
-            final_obs = obs.copy()
+        obs, rew, term, trunc, info = self.core.step(actions)
+        N = self.num_envs
+        done_mask = term | trunc
+        out = _with_masks(info, np.ones(N, dtype=bool))
+        if done_mask.any():
+            done = [int(i) for i in np.flatnonzero(done_mask)]
+            final_obs = np.empty(N, dtype=object)
             for i in done:
-                infos = self._add_info(infos, {"final_obs": final_obs[i], "final_info": infos_list[i]}, int(i))
-            which = [int(i) for i in done]
-            self.core.reset_envs(which)
-            new_obs = self.core.observe(None, which=which)
-            obs[done] = new_obs[done]
-        for i, info in enumerate(infos_list):
-            infos = self._add_info(infos, info, i)
-        return obs, rew, term, trunc, infos
+                final_obs[i] = obs[i].copy()
+            out["final_obs"] = final_obs
+            out["_final_obs"] = done_mask.copy()
+            out["final_info"] = _with_masks(info, done_mask)
+            out["_final_info"] = done_mask.copy()
+            self.core.reset_envs(done)
+            new_obs = self.core.observe(None, which=done)
+            obs[done_mask] = new_obs[done_mask]
+        return obs, rew, term, trunc, out
