@@ -1,0 +1,100 @@
+"""An SB3 ``VecEnv`` over blf_gym's native vector env: N arms in one compiled call.
+
+SB3 expects same-step resets with the last observation of an ended episode in
+``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]`` for truncations;
+this adapter provides exactly that on top of :class:`blf_gym.vector.PlanarBLFVectorEnv`.
+
+>>> from agents.vec_env import BLFVecEnv
+>>> venv = BLFVecEnv(8, controller="proposed", seed=0)   # doctest: +SKIP
+>>> model = stable_baselines3.SAC("MlpPolicy", venv)     # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+from stable_baselines3.common.vec_env.base_vec_env import VecEnv
+
+from blf_gym.vector import PlanarBLFVectorEnv
+
+__all__ = ["BLFVecEnv"]
+
+
+def _row(info: dict[str, Any], i: int) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in info.items():
+        if k.startswith("_") or k in ("final_obs", "final_info"):
+            continue
+        if isinstance(v, dict):
+            out[k] = _row(v, i)
+        else:
+            x = v[i]
+            out[k] = x.item() if isinstance(x, np.generic) else x
+    return out
+
+
+class BLFVecEnv(VecEnv):
+    """SB3 vectorized env of ``num_envs`` PlanarBLF arms; kwargs are PlanarBLFEnv's."""
+
+    def __init__(self, num_envs: int, seed: int | None = None, **env_kwargs: Any) -> None:
+        self.venv = PlanarBLFVectorEnv(num_envs=num_envs, **env_kwargs)
+        super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
+        self._seed = seed
+        self._actions: np.ndarray | None = None
+        self.render_mode = None
+
+    # --- core API
+    def reset(self) -> np.ndarray:
+        obs, _ = self.venv.reset(seed=self._seed)
+        self._seed = None  # later resets continue the streams
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return obs
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self):
+        obs, rew, term, trunc, info = self.venv.step(self._actions)
+        dones = term | trunc
+        infos: list[dict[str, Any]] = []
+        for i in range(self.num_envs):
+            if dones[i]:
+                row = _row(info["final_info"], i)
+                row["terminal_observation"] = info["final_obs"][i]
+                row["TimeLimit.truncated"] = bool(trunc[i] and not term[i])
+            else:
+                row = _row(info, i)
+            infos.append(row)
+        return obs, rew.astype(np.float32), dones, infos
+
+    def seed(self, seed: int | None = None) -> Sequence[None | int]:
+        self._seed = seed
+        return [None if seed is None else seed + i for i in range(self.num_envs)]
+
+    def close(self) -> None:
+        self.venv.close()
+
+    # --- attribute access (there are no per-arm env objects)
+    def get_attr(self, attr_name: str, indices: Any = None) -> list[Any]:
+        return [getattr(self.venv, attr_name) for _ in self._get_indices(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: Any = None) -> None:
+        setattr(self.venv, attr_name, value)
+
+    def env_method(self, method_name: str, *method_args: Any, indices: Any = None, **method_kwargs: Any) -> list[Any]:
+        fn = getattr(self.venv, method_name)
+        return [fn(*method_args, **method_kwargs) for _ in self._get_indices(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type, indices: Any = None) -> list[bool]:
+        return [False for _ in self._get_indices(indices)]
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        return [None for _ in range(self.num_envs)]
+
+    def _get_indices(self, indices: Any) -> Iterable[int]:
+        if indices is None:
+            return range(self.num_envs)
+        if isinstance(indices, int):
+            return [indices]
+        return indices

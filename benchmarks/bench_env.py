@@ -1,0 +1,78 @@
+"""Speed of PlanarBLF-v0 through ``gym.make`` and of the native vector env (issue: env, item 12).
+
+Prints medians measured in this run, beside Gymnasium's Pendulum-v1 measured in the same run, and
+the targets: residual ``env.step`` (10 ms simulated = 100 closed-loop steps) <= 100 us median;
+vector env in residual mode >= 15,000 agent steps/s at N = 64.
+
+Run:  python benchmarks/bench_env.py [--steps 2000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import gymnasium as gym
+import numpy as np
+
+import blf_gym  # noqa: F401  (registers the ids)
+
+
+def _env_step_us(env_id: str, steps: int, **kwargs) -> float:
+    env = gym.make(env_id, **kwargs)
+    env.reset(seed=0)
+    a = np.zeros(env.action_space.shape, dtype=np.float32)
+    for _ in range(20):  # warm-up (kernel load)
+        env.step(a)
+    env.reset(seed=0)
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        _, _, term, trunc, _ = env.step(a)
+        times.append(time.perf_counter() - t0)
+        if term or trunc:
+            env.reset()
+    env.close()
+    return statistics.median(times) * 1e6
+
+
+def _vector_rate(num_envs: int, steps: int, threads: int | None) -> float:
+    venv = gym.make_vec("PlanarBLFResidual-v0", num_envs=num_envs, threads=threads)
+    venv.reset(seed=0)
+    a = np.zeros((num_envs, 3), dtype=np.float32)
+    for _ in range(3):
+        venv.step(a)
+    times = []
+    for _ in range(steps):
+        t0 = time.perf_counter()
+        venv.step(a)
+        times.append(time.perf_counter() - t0)
+    venv.close()
+    return num_envs / statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--steps", type=int, default=2000)
+    args = ap.parse_args()
+    pend = _env_step_us("Pendulum-v1", args.steps)
+    plain = _env_step_us("PlanarBLF-v0", args.steps)
+    resid = _env_step_us("PlanarBLFResidual-v0", args.steps)
+    print(f"env.step through gym.make, median of {args.steps}:")
+    print(f"  Pendulum-v1            {pend:8.1f} us")
+    print(f"  PlanarBLF-v0 (plain)   {plain:8.1f} us   ({plain / pend:.1f}x Pendulum)")
+    print(f"  PlanarBLFResidual-v0   {resid:8.1f} us   ({resid / pend:.1f}x Pendulum)   "
+          f"target <= 100 us  ratio {resid / 100:.2f}x")
+    print("\nvector env, residual mode, agent steps per second (median step):")
+    for n in (1, 16, 64):
+        for threads in (1, 2):
+            if n == 1 and threads == 2:
+                continue
+            rate = _vector_rate(n, max(20, args.steps // (4 * n)), threads)
+            tgt = f"   target >= 15000  ratio {rate / 15000:.2f}x" if n == 64 else ""
+            print(f"  N = {n:3d}  threads = {threads}  {rate:9.0f} /s{tgt}")
+
+
+if __name__ == "__main__":
+    main()
