@@ -23,9 +23,10 @@ Law signature (all arrays float64, C-contiguous; n joints)::
     model    (2n^2+3n,)  the nominal model at the measured angles y, computed once per stage by
                          the kernel and shared by the law and the observer: [M(y) flat row-major
                          (n^2), G(y) (n), cos of the absolute link angles (n), their sines (n),
-                         the lower Cholesky factor of M(y) flat row-major (n^2)]; pass its trig
-                         part to blf_gym.dynamics.coriolis_times_into for C(y, v) w, and its
-                         factor to cholesky_solve_factored for M(y)^-1 b
+                         the lower Cholesky factor of M(y) flat row-major with reciprocal
+                         diagonal (n^2)]; pass its trig part to
+                         blf_gym.dynamics.coriolis_times_into for C(y, v) w, and its factor to
+                         blf_gym.dynamics.cholesky_solve_factored for M(y)^-1 b
     gains    (G,)        the controller's own packed gains
     u_out    (n,)        write the commanded torque here, N m (finite, always)
     work     (WORK,)     scratch of length work_length(n); contents undefined on entry

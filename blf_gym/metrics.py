@@ -89,6 +89,7 @@ def summarize(
         a = _traj_arrays(traj)
         e1, ka, kb, u = a["e1"], a["k_a"], a["k_b"], a["u"]
         episodes += 1
+        n_joints = e1.shape[1] if e1.ndim == 2 else 3
         if e1.shape[0] == 0:
             diverged = True
             fails += 1
@@ -118,18 +119,23 @@ def summarize(
         step_viol = getattr(traj, "step_violations", 0)
         ep_div = bool(getattr(traj, "diverged", False))
         diverged |= ep_div
+        # earliest violation: a 1 ms sample, or an integration step between samples
+        candidates = []
         if mask.any():
-            t_first = float(a["t"][np.argmax(mask.any(axis=1))])
-            first = t_first if first is None else min(first, t_first)
+            candidates.append(float(a["t"][np.argmax(mask.any(axis=1))]))
+        step_t = getattr(traj, "first_violation_step_time", None)
+        if step_t is not None:
+            candidates.append(float(step_t))
+        if candidates:
+            first = min(candidates) if first is None else min(first, *candidates)
         if mask.any() or step_viol > 0 or ep_div:
             fails += 1
     if episodes == 0:
         raise ValueError("summarize needs at least one trajectory")
     if sq_sum is None:
-        nan3: list[float | None] = [None, None, None]
         return {"policy": policy, "kind": kind, "scenario": scenario, "episodes": episodes, "dt": dt,
-                **{k: nan3 for k in PER_JOINT}, "first_violation_s": None, "failure_rate": 1.0,
-                "rmse_cvar_deg": None, "diverged": True, "wall_s": wall_s}
+                **{k: [None] * n_joints for k in PER_JOINT}, "first_violation_s": None,
+                "failure_rate": 1.0, "rmse_cvar_deg": None, "diverged": True, "wall_s": wall_s}
     return {
         "policy": policy,
         "kind": kind,
@@ -179,6 +185,11 @@ def write_results(records: Sequence[dict[str, Any]], out_dir: str | os.PathLike)
         missing = [f for f in RECORD_FIELDS if f not in r]
         if missing:
             raise ValueError(f"record for {r.get('policy')!r} lacks fields {missing}")
+        if r["kind"] not in KINDS:
+            raise ValueError(f"record for {r.get('policy')!r}: kind must be one of {KINDS}, got {r['kind']!r}")
+        lengths = {len(r[f]) for f in PER_JOINT}
+        if len(lengths) != 1:
+            raise ValueError(f"record for {r.get('policy')!r}: per-joint fields differ in length {sorted(lengths)}")
     jp, cp = out / "results.json", out / "results.csv"
     atomic_write_json(jp, {"schema_version": SCHEMA_VERSION, "records": list(records)})
     atomic_write_text(cp, _csv_text(records))

@@ -63,9 +63,10 @@ def reference_into(t, rp, arm, out):
         s, sd, sdd = -s, -sd, -sdd
     one_m = 1.0 - s * s
     den = np.sqrt(one_m)
+    inv_den = 1.0 / den
     q2 = 2.0 * np.arccos(s)
-    q2d = -2.0 * sd / den
-    q2dd = -2.0 * (sdd * one_m + s * sd * sd) / (den * one_m)
+    q2d = -2.0 * sd * inv_den
+    q2dd = -2.0 * (sdd * one_m + s * sd * sd) * (inv_den * inv_den * inv_den)
 
     # wrist position angle alpha = atan2(w_y, w_x)
     wx = wcx + rad * c
@@ -78,15 +79,16 @@ def reference_into(t, rp, arm, out):
     cr = wx * wyd - wy * wxd
     crd = wx * wydd - wy * wxdd
     ddd = 2.0 * (wx * wxd + wy * wyd)
-    ald = cr / dd
-    aldd = (crd * dd - cr * ddd) / (dd * dd)
+    inv_dd = 1.0 / dd
+    ald = cr * inv_dd
+    aldd = (crd * dd - cr * ddd) * (inv_dd * inv_dd)
 
     # elbow offset angle beta = atan2(l2 sin q2, l1 + l2 cos q2)
     c2 = 2.0 * s * s - 1.0  # cos(q2) = cos(2 acos s)
     s2 = 2.0 * s * den  # sin(q2)
-    d2 = l1 * l1 + l2 * l2 + 2.0 * l1 * l2 * c2
-    nn = l2 * (l2 + l1 * c2) / d2
-    nq = l1 * l2 * s2 * (l2 * l2 - l1 * l1) / (d2 * d2)
+    inv_d2 = 1.0 / (l1 * l1 + l2 * l2 + 2.0 * l1 * l2 * c2)
+    nn = l2 * (l2 + l1 * c2) * inv_d2
+    nq = l1 * l2 * s2 * (l2 * l2 - l1 * l1) * (inv_d2 * inv_d2)
     bed = nn * q2d
     bedd = nn * q2dd + nq * q2d * q2d
 

@@ -427,22 +427,48 @@ def scratch_length(n: int) -> int:
 # specialisation: clone the templates with the law and observer bound, compile with a disk cache
 
 
+_KERNEL_MODULES = ("bounds", "controller", "dynamics", "reference", "simulate", "uncertainty")
+
+
 def _source_digest(*modules: types.ModuleType) -> str:
-    """Hash of the source files the compiled code depends on.
+    """Hash of the source files the compiled kernel depends on.
 
     numba's cache only watches the file that defines a function, not the files of the functions
-    it calls; folding every dependency's source into the kernel's name makes an edit anywhere
-    invalidate the cached kernel.
+    it calls; folding every dependency's source into the kernel's name makes an edit to any of
+    them invalidate the cached kernel (and only those: editing the env does not recompile).
     """
     h = hashlib.sha1()
     pkg = Path(__file__).parent
-    for p in sorted(pkg.glob("*.py")):
-        h.update(p.read_bytes())
+    for name in _KERNEL_MODULES:
+        h.update((pkg / f"{name}.py").read_bytes())
     for m in modules:
         f = getattr(m, "__file__", None)
         if f:
             h.update(Path(f).read_bytes())
     return h.hexdigest()[:10]
+
+
+def _remove_stale_cache(prefix: str, digest: str) -> None:
+    """Delete cache files of older builds of the same kernel (they are never used again)."""
+    cache = Path(__file__).parent / "__pycache__"
+    if not cache.is_dir():
+        return
+    for f in cache.glob(f"simulate.{prefix}*"):
+        if digest not in f.name:
+            try:
+                f.unlink()
+            except OSError:
+                pass
+
+
+def kernel_is_cached(law, observer_rhs, n: int = 3) -> bool:
+    """True if the kernel for this (law, observer) pair is already compiled on disk."""
+    import sys
+
+    deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
+    tag = f"{_ident(law)}__{_ident(observer_rhs)}__{_source_digest(*deps)}"
+    cache = Path(__file__).parent / "__pycache__"
+    return any(cache.glob(f"simulate.advance__n{n}__{tag}*.nbi"))
 
 
 def _clone(template, name: str, bindings: dict, **jit_options):
@@ -469,7 +495,11 @@ def _specialise(law, observer_rhs, n: int):
         import sys
 
         deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
-        tag = f"{_ident(law)}__{_ident(observer_rhs)}__{_source_digest(*deps)}"
+        digest = _source_digest(*deps)
+        pair = f"{_ident(law)}__{_ident(observer_rhs)}"
+        tag = f"{pair}__{digest}"
+        _remove_stale_cache(f"stage__n{n}__{pair}__", digest)
+        _remove_stale_cache(f"advance__n{n}__{pair}__", digest)
         stage = _clone(_stage_template, f"stage__n{n}__{tag}", {"_law": law, "_observer": observer_rhs, "_N": n},
                        inline="always")
         kernel = _clone(
