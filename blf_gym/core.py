@@ -165,18 +165,23 @@ class EnvCore:
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
         threads: int | None = None,
+        single: bool = False,
     ) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.num_envs = int(num_envs)
+        self.single = bool(single)
+        if self.single and self.num_envs != 1:
+            raise ValueError("a single env core has num_envs == 1")
         base, suite = resolve_scenario(scenario)
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
         if sim_over:
             base = replace(base, sim=replace(base.sim, **sim_over))
-        if angle_noise_std is not None:
-            base = apply_variations(base, {"angle_noise_std": angle_noise_std})
         self.variations = dict(variations or {})
+        if angle_noise_std is not None:
+            self.variations["angle_noise_std"] = angle_noise_std
+        # validated now; re-applied after every suite draw so they override it
         self.base = apply_variations(base, self.variations) if self.variations else base
         self.suite = suite
         self.sim = self.base.sim
@@ -191,7 +196,11 @@ class EnvCore:
         self.control_period = float(control_period)
         self.samples_per_period = int(round(ratio))
         self.steps_per_period = self.samples_per_period * self.sim.steps_per_sample
-        self.max_episode_steps = int(math.ceil(self.sim.n_samples / self.samples_per_period))
+        if self.sim.n_samples % self.samples_per_period:
+            raise ValueError(
+                f"duration ({self.sim.duration} s) must be a whole number of control periods "
+                f"({self.control_period} s)")
+        self.max_episode_steps = self.sim.n_samples // self.samples_per_period
         if not (math.isfinite(residual_scale) and residual_scale > 0):
             raise ValueError(f"residual_scale must be a positive number of N m, got {residual_scale!r}")
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
@@ -225,7 +234,11 @@ class EnvCore:
     # ------------------------------------------------------------------ reset
     def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
         """The episode's scenario: the suite draw (if any), then option variations."""
-        sc = sample_suite(rng, self.base, self.suite) if self.suite else self.base
+        sc = self.base
+        if self.suite:
+            sc = sample_suite(rng, self.base, self.suite)
+            if self.variations:
+                sc = apply_variations(sc, self.variations)
         if options:
             opts = dict(options)
             var = {k: opts.pop(k) for k in list(opts) if k in ("frequency", "force", "force_onset",
@@ -251,13 +264,10 @@ class EnvCore:
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
         a = np.asarray(actions, dtype=np.float64)
-        want = (self.num_envs, self.n)
+        want = (self.n,) if self.single else (self.num_envs, self.n)
         if a.shape != want:
-            if self.num_envs == 1 and a.shape == (self.n,):
-                a = a.reshape(want)
-            else:
-                raise ValueError(f"action must have shape {want if self.num_envs > 1 else (self.n,)}, "
-                                 f"got {a.shape}")
+            raise ValueError(f"action must have shape {want}, got {a.shape}")
+        a = a.reshape(self.num_envs, self.n)
         if not np.all(np.isfinite(a)):
             raise ValueError(f"action must be finite, got {a.tolist()}")
         return np.clip(a, -1.0, 1.0)
@@ -296,7 +306,7 @@ class EnvCore:
         reason[violated & self.terminate_on_violation] = "violation"
         reason[diverged != 0] = "diverged"
         last = self.loop.last
-        self.last_x3[:] = last[:, 3 * n :]
+        self.last_x3[:] = last[:, 3 * n : 4 * n]
         info: dict[str, Any] = {
             "cost": violated.astype(np.float64),
             "violating_samples": status[:, ST_VIOL_SAMPLES].copy(),
@@ -304,8 +314,8 @@ class EnvCore:
             "u_law": last[:, n : 2 * n].copy(),
             "u_residual": residual,
             "saturated": status[:, ST_SAT_STEPS] > 0,
-            "x3": last[:, 3 * n :].copy(),
-            "x3_hat": self.loop.X[:, 4 * n :].copy(),
+            "x3": last[:, 3 * n : 4 * n].copy(),
+            "x3_hat": last[:, 4 * n : 5 * n].copy(),
             "termination_reason": reason,
             "truncation_reason": np.where(truncated, "time_limit", None).astype(object),
             "reward_info": {"alive": np.full(N, float(w.alive)), "tracking": -w.tracking * tracking,

@@ -84,9 +84,11 @@ class PlanarBLFEnv(gym.Env):
     ``time`` (s), ``e1`` (rad), ``k_a``, ``k_b`` (rad), ``g_upper = e1 - k_a`` and
     ``g_lower = -k_b - e1`` (constraint margins, <= 0 is safe), ``cost`` (1.0 if any integration
     step of this agent step broke a bound), ``violating_samples`` (1 ms samples), ``u``,
-    ``u_law``, ``u_residual`` (N m), ``saturated``, ``x3`` and ``x3_hat`` (true and estimated
-    lumped disturbance against the nominal model, rad/s^2, at the last 1 ms sample),
-    ``termination_reason``, ``truncation_reason``, ``reward_info``.
+    ``u_law`` (at the start of the step's last integration step), ``u_residual`` (N m),
+    ``saturated`` (the actuator limit clipped at some step), ``x3`` and ``x3_hat`` (true and
+    estimated lumped disturbance against the nominal model, rad/s^2, both at the step's last 1 ms
+    sample, t_end - 1 ms), ``termination_reason``, ``truncation_reason``, ``reward_info``.
+    The privileged observation's true x3 is that same sample's.
 
     ## Arguments
     ```python
@@ -101,9 +103,11 @@ class PlanarBLFEnv(gym.Env):
     ``controller`` (None, "bc", "lesobc", "proposed" or an ``InnerController``),
     ``residual_scale`` (N m, 2.0), ``control_period`` (s, 0.01; a multiple of 1 ms),
     ``privileged`` (False), ``terminate_on_violation`` (True), ``angle_noise_std`` (rad),
-    ``duration`` (s), ``max_torque`` (N m, 150), ``dt`` (s, 1e-4), ``variations`` (dict of
-    :data:`blf_gym.scenarios.VARIATIONS`), ``reward_weights``, ``render_mode``
-    ("rgb_array" or "human"). ``reset(options=...)`` takes the same variations per episode.
+    ``duration`` (s, a whole number of control periods), ``max_torque`` (N m, 150), ``dt`` (s,
+    1e-4), ``variations`` (dict of :data:`blf_gym.scenarios.VARIATIONS`; with
+    ``scenario="randomized"`` they override the suite's draw), ``reward_weights``,
+    ``render_mode`` ("rgb_array" or "human"). ``reset(options=...)`` takes the same variations
+    per episode, applied last.
 
     ## Version History
     * v0: initial release.
@@ -135,7 +139,7 @@ class PlanarBLFEnv(gym.Env):
             control_period=control_period, privileged=privileged,
             terminate_on_violation=terminate_on_violation, angle_noise_std=angle_noise_std,
             duration=duration, max_torque=max_torque, dt=dt, variations=variations,
-            reward_weights=reward_weights, threads=1,
+            reward_weights=reward_weights, threads=1, single=True,
         )
         self.render_mode = render_mode
         n = self.core.n

@@ -18,7 +18,9 @@ knob                          unit    safe range        meaning
 ============================  ======  ================  ==========================================
 
 Payloads lighter than about 0.08 kg make the true M33 so small that the closed loop's fastest mode
-leaves ODE3's stability region at h = 0.1 ms: such runs are reported as diverged.
+leaves ODE3's stability region at h = 0.1 ms: such runs are reported as diverged. The ranges are
+safe for the paper's controllers; in plain mode with termination off, large actions can spin the
+arm up until the run diverges, which is reported the same way.
 
 The **randomized suite** (``"randomized"``) draws each knob uniformly from :data:`SUITE_RANGES`
 with a caller-supplied ``numpy.random.Generator``; the controller's nominal model stays the

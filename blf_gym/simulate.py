@@ -368,6 +368,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                         if e >= bnd[0] or e <= -bnd[3]:
                             bad = True
                         last[b, 3 * n + i] = x3[i]
+                        last[b, 4 * n + i] = x[4 * n + i]
                     n_samples += 1
                     if bad:
                         viol_samples += 1
@@ -609,7 +610,7 @@ class ClosedLoop:
         self.N = len(scenarios)
         self.X = np.zeros((self.N, 5 * self.n))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
-        self.last = np.zeros((self.N, 4 * self.n))
+        self.last = np.zeros((self.N, 5 * self.n))
         self._scratch = np.zeros((self.N, scratch_length(self.n)))
         self.set_scenarios(scenarios)
 
@@ -677,8 +678,8 @@ class ClosedLoop:
         status columns [steps, diverged (0, 1 non-finite, 2 unstable), violating steps, first
         violating step or -1, saturated steps, violating 1 ms samples]. ``self.sums`` then holds
         per arm [max ODE3 error estimate, sum of (e1/bound)^2, sum of (u/max_torque)^2, samples]
-        over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated, x3] of the last
-        step and sample.
+        over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated] at the start of the
+        last integration step and [x3, x3_hat] at the last 1 ms sample.
         """
         N, n = self.N, self.n
         res = np.zeros((N, n)) if residual is None else np.ascontiguousarray(residual, dtype=np.float64)
@@ -727,14 +728,18 @@ def divergence_message(code: int, t: float, dt: float) -> str:
     """Human-readable reason for a kernel divergence code (status column ``diverged``)."""
     if code == 1:
         return (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
-                f"SimParams.divergence_limit. The step dt = {dt} s is likely too large for the "
-                f"gains, or the plant parameters are extreme; the signals up to that time are kept")
+                f"SimParams.divergence_limit. Either the step dt = {dt} s is too large for the "
+                f"controller's gains, or the applied torques (e.g. large plain-mode actions with "
+                f"termination off) or the plant parameters drive the arm to extreme speeds; the "
+                f"signals up to that time are kept")
     if code == 2:
         return (f"simulation diverged numerically at t = {t:.6f} s: ODE3's embedded error estimate "
                 f"stayed above tolerance for SimParams.unstable_steps consecutive steps, so dt = "
-                f"{dt} s is outside the integrator's stability region for these gains (the "
-                f"actuator limit kept the state finite, but the numbers are meaningless). Use a "
-                f"smaller dt (0.1 ms for the paper's gains); the signals up to that time are kept")
+                f"{dt} s is outside the integrator's stability region for this closed loop (the "
+                f"actuator limit kept the state finite, but the numbers are meaningless). With a "
+                f"controller, use a smaller dt (0.1 ms for the paper's gains); in plain mode, the "
+                f"actions may be spinning the arm up to extreme speeds. The signals up to that "
+                f"time are kept")
     return ""
 
 
