@@ -146,8 +146,23 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
                 o[k + n + j] = _sq(last_x3[b, j], _SQ_DIST)
 
 
+def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
+    """ValueError naming any keyword argument the env does not know, with the accepted ones."""
+    import inspect
+
+    accepted = [p for p in inspect.signature(EnvCore.__init__).parameters
+                if p not in ("self", "num_envs", "single")]
+    unknown = sorted(set(kwargs) - set(accepted))
+    if unknown:
+        raise ValueError(f"unknown argument(s) {unknown} for PlanarBLF; accepted: {accepted}")
+
+
 class EnvCore:
-    """N arms of the PlanarBLF task stepped together by one compiled kernel call."""
+    """N arms of the PlanarBLF task stepped together by one compiled kernel call.
+
+    This is the one place the environment's defaults live; :class:`~blf_gym.env.PlanarBLFEnv`
+    and :class:`~blf_gym.vector.PlanarBLFVectorEnv` pass their keyword arguments through.
+    """
 
     def __init__(
         self,

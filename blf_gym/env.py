@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .controller import InnerController
-from .core import EnvCore, RewardWeights, observation_layout
+from .core import EnvCore, check_env_kwargs, observation_layout
 from .params import Scenario
 
 __all__ = ["PlanarBLFEnv"]
@@ -115,32 +114,15 @@ class PlanarBLFEnv(gym.Env):
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 25}
 
-    def __init__(
-        self,
-        scenario: "str | Scenario" = "paper-0.1hz",
-        controller: "str | InnerController | None" = None,
-        residual_scale: float = 2.0,
-        control_period: float = 0.01,
-        privileged: bool = False,
-        terminate_on_violation: bool = True,
-        angle_noise_std: float | None = None,
-        duration: float | None = None,
-        max_torque: float | None = None,
-        dt: float | None = None,
-        variations: Mapping[str, Any] | None = None,
-        reward_weights: RewardWeights | Mapping[str, float] | None = None,
-        render_mode: str | None = None,
-    ) -> None:
+    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+        """Keyword arguments are listed under *Arguments* above; their defaults live in
+        :class:`blf_gym.core.EnvCore`."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
-        self.core = EnvCore(
-            1, scenario=scenario, controller=controller, residual_scale=residual_scale,
-            control_period=control_period, privileged=privileged,
-            terminate_on_violation=terminate_on_violation, angle_noise_std=angle_noise_std,
-            duration=duration, max_torque=max_torque, dt=dt, variations=variations,
-            reward_weights=reward_weights, threads=1, single=True,
-        )
+        check_env_kwargs(kwargs)
+        kwargs.setdefault("threads", 1)
+        self.core = EnvCore(1, single=True, **kwargs)
         self.render_mode = render_mode
         n = self.core.n
         self.action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)

@@ -9,7 +9,7 @@ and the returned observation is already the first of its next episode.
 
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
@@ -17,9 +17,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .controller import InnerController
-from .core import EnvCore, RewardWeights
-from .params import Scenario
+from .core import EnvCore, check_env_kwargs
 
 __all__ = ["PlanarBLFVectorEnv"]
 
@@ -39,33 +37,11 @@ class PlanarBLFVectorEnv(VectorEnv):
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
 
-    def __init__(
-        self,
-        num_envs: int = 1,
-        scenario: "str | Scenario" = "paper-0.1hz",
-        controller: "str | InnerController | None" = None,
-        residual_scale: float = 2.0,
-        control_period: float = 0.01,
-        privileged: bool = False,
-        terminate_on_violation: bool = True,
-        angle_noise_std: float | None = None,
-        duration: float | None = None,
-        max_torque: float | None = None,
-        dt: float | None = None,
-        variations: Mapping[str, Any] | None = None,
-        reward_weights: RewardWeights | Mapping[str, float] | None = None,
-        render_mode: str | None = None,
-        threads: int | None = None,
-    ) -> None:
+    def __init__(self, num_envs: int = 1, render_mode: str | None = None, **kwargs: Any) -> None:
         if render_mode is not None:
             raise ValueError("PlanarBLFVectorEnv does not render; use the single env for pictures")
-        self.core = EnvCore(
-            num_envs, scenario=scenario, controller=controller, residual_scale=residual_scale,
-            control_period=control_period, privileged=privileged,
-            terminate_on_violation=terminate_on_violation, angle_noise_std=angle_noise_std,
-            duration=duration, max_torque=max_torque, dt=dt, variations=variations,
-            reward_weights=reward_weights, threads=threads,
-        )
+        check_env_kwargs(kwargs)
+        self.core = EnvCore(num_envs, **kwargs)
         self.num_envs = self.core.num_envs
         n = self.core.n
         self.single_action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)

@@ -669,3 +669,10 @@ def test_single_env_rejects_a_batched_action_shape():
 def test_duration_must_be_a_whole_number_of_control_periods():
     with pytest.raises(ValueError, match="control periods"):
         gym.make("PlanarBLF-v0", duration=0.05, control_period=0.02)
+
+
+def test_unknown_keyword_argument_is_a_value_error_listing_the_accepted_ones():
+    with pytest.raises(ValueError, match="bogus.*accepted.*control_period"):
+        gym.make("PlanarBLF-v0", bogus=1)
+    with pytest.raises(ValueError, match="bogus"):
+        gym.make_vec("PlanarBLF-v0", num_envs=2, bogus=1)
