@@ -283,9 +283,12 @@ class EnvCore:
         if a.shape != want:
             raise ValueError(f"action must have shape {want}, got {a.shape}")
         a = a.reshape(self.num_envs, self.n)
-        if not np.all(np.isfinite(a)):
+        lo, hi = a.min(), a.max()
+        if not (np.isfinite(lo) and np.isfinite(hi)):
             raise ValueError(f"action must be finite, got {a.tolist()}")
-        return np.clip(a, -1.0, 1.0)
+        if lo < -1.0 or hi > 1.0:
+            a = np.minimum(np.maximum(a, -1.0), 1.0)
+        return a
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One agent step of every arm; returns (obs, rewards, terminated, truncated, info) with

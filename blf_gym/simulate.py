@@ -612,6 +612,9 @@ class ClosedLoop:
         self.ksteps = np.zeros(self.N, dtype=np.int64)
         self.last = np.zeros((self.N, 5 * self.n))
         self._scratch = np.zeros((self.N, scratch_length(self.n)))
+        self._zeros_residual = np.zeros((self.N, self.n))
+        self._no_noise = np.zeros((self.N, 0, self.n))
+        self._no_record = np.zeros((self.N, 0, N_CHANNELS, self.n))
         self.set_scenarios(scenarios)
 
     def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None) -> None:
@@ -682,24 +685,31 @@ class ClosedLoop:
         last integration step and [x3, x3_hat] at the last 1 ms sample.
         """
         N, n = self.N, self.n
-        res = np.zeros((N, n)) if residual is None else np.ascontiguousarray(residual, dtype=np.float64)
-        if res.shape != (N, n):
-            raise ValueError(f"residual must have shape {(N, n)}, got {res.shape}")
-        nz = np.zeros((N, 0, n)) if noise is None else np.ascontiguousarray(noise, dtype=np.float64)
-        if nz.shape[1] not in (0, n_steps) or nz.shape[0] != N:
-            raise ValueError(f"noise must have shape {(N, n_steps, n)}, got {nz.shape}")
+        if residual is None:
+            res = self._zeros_residual
+        else:
+            res = residual if (type(residual) is np.ndarray and residual.dtype == np.float64
+                               and residual.flags.c_contiguous) else np.ascontiguousarray(residual, dtype=np.float64)
+            if res.shape != (N, n):
+                raise ValueError(f"residual must have shape {(N, n)}, got {res.shape}")
+        if noise is None:
+            nz = self._no_noise
+        else:
+            nz = np.ascontiguousarray(noise, dtype=np.float64)
+            if nz.shape[1] not in (0, n_steps) or nz.shape[0] != N:
+                raise ValueError(f"noise must have shape {(N, n_steps, n)}, got {nz.shape}")
         if record_samples is None:
             record_samples = n_steps // self.steps_per_sample + 1
-        rec = np.zeros((N, record_samples, N_CHANNELS, n))
+        rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
         nrec = np.zeros(N, dtype=np.int64)
-        status = np.zeros((N, N_STATUS), dtype=np.int64)
+        status = np.empty((N, N_STATUS), dtype=np.int64)
+        sums = np.empty((N, 4))
         b = self._batch
-        sums = np.zeros((N, 4))
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
                   res, nz, rec, nrec, status, self.last, self._scratch, sums)
 
         def run(lo: int, hi: int) -> None:
-            a = [arr[lo:hi] for arr in arrays]
+            a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
             self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
                          a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], bool(terminate),
                          a[10], a[11], a[12], a[13], a[14], a[15])
