@@ -180,12 +180,14 @@ class EnvCore:
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
         threads: int | None = None,
+        record: bool = False,
         single: bool = False,
     ) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
         self.num_envs = int(num_envs)
         self.single = bool(single)
+        self.record = bool(record)
         if self.single and self.num_envs != 1:
             raise ValueError("a single env core has num_envs == 1")
         base, suite = resolve_scenario(scenario)
@@ -200,22 +202,28 @@ class EnvCore:
         self.base = apply_variations(base, self.variations) if self.variations else base
         self.suite = suite
         self.sim = self.base.sim
-        # agent period: h | 1 ms | control_period (SPEC section 6)
+        # agent period (SPEC section 6): a whole number of integration steps that is either a
+        # whole number of 1 ms samples or divides 1 ms (down to a single step, for sampled
+        # controllers such as the baseline policies)
         if not (math.isfinite(control_period) and control_period > 0):
             raise ValueError(f"control_period must be a positive number of seconds, got {control_period!r}")
-        ratio = control_period / self.sim.sample_period
-        if abs(ratio - round(ratio)) > 1e-9 * max(ratio, 1.0) or round(ratio) < 1:
+        steps = control_period / self.sim.dt
+        sps = self.sim.steps_per_sample
+        whole = abs(steps - round(steps)) <= 1e-9 * max(steps, 1.0) and round(steps) >= 1
+        steps_i = int(round(steps))
+        if not whole or (steps_i % sps and sps % steps_i):
             raise ValueError(
                 f"control_period must be a whole multiple of the {self.sim.sample_period} s sample "
-                f"period (e.g. 0.002, 0.005, 0.01), got {control_period!r}")
+                f"period (e.g. 0.002, 0.005, 0.01) or divide it into whole integration steps of "
+                f"{self.sim.dt} s (e.g. 1e-4, 5e-4), got {control_period!r}")
         self.control_period = float(control_period)
-        self.samples_per_period = int(round(ratio))
-        self.steps_per_period = self.samples_per_period * self.sim.steps_per_sample
-        if self.sim.n_samples % self.samples_per_period:
+        self.steps_per_period = steps_i
+        self.samples_per_period = max(1, steps_i // sps)
+        if self.sim.n_steps % self.steps_per_period:
             raise ValueError(
                 f"duration ({self.sim.duration} s) must be a whole number of control periods "
                 f"({self.control_period} s)")
-        self.max_episode_steps = self.sim.n_samples // self.samples_per_period
+        self.max_episode_steps = self.sim.n_steps // self.steps_per_period
         if not (math.isfinite(residual_scale) and residual_scale > 0):
             raise ValueError(f"residual_scale must be a positive number of N m, got {residual_scale!r}")
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
@@ -243,6 +251,7 @@ class EnvCore:
         self._ref = np.zeros((N, 3 * n))
         self._bnd = np.zeros((N, 6))
         self._obs_noise = np.zeros((N, n))
+        self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
 
@@ -275,6 +284,7 @@ class EnvCore:
             self.steps[i] = 0
             self.last_x3[i] = 0.0
             self.done[i] = False
+            self._chunks[i] = []
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
@@ -305,8 +315,14 @@ class EnvCore:
             noise = np.zeros((N, self.steps_per_period, n))
             for i in np.flatnonzero(stds > 0):
                 noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * stds[i]
-        _, _, status = self.loop.advance(self.steps_per_period, residual=residual, noise=noise,
-                                         terminate=self.terminate_on_violation, record_samples=0)
+        rec, nrec, status = self.loop.advance(
+            self.steps_per_period, residual=residual, noise=noise,
+            terminate=self.terminate_on_violation,
+            record_samples=self.samples_per_period if self.record else 0)
+        if self.record:
+            for i in range(N):
+                if nrec[i]:
+                    self._chunks[i].append(rec[i, : nrec[i]].copy())
         sums = self.loop.sums
         self.steps += 1
         w = self.weights
@@ -346,6 +362,20 @@ class EnvCore:
         self.done[:] = terminated | truncated
         obs = self.observe(info)
         return obs, rewards, terminated, truncated, info
+
+    def trajectory(self, i: int = 0):
+        """Arm i's current episode so far on the 1 ms grid, as a
+        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``)."""
+        from .simulate import CHANNELS, Trajectory
+
+        if not self.record:
+            raise ValueError("trajectories are kept only with record=True")
+        chunks = self._chunks[i]
+        r = np.concatenate(chunks) if chunks else np.zeros((0, len(CHANNELS), self.n))
+        signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
+                   for k, name in enumerate(CHANNELS)}
+        return Trajectory(scenario=self.scenarios[i].name, controller=self.controller.name,
+                          dt=self.sim.dt, signals=signals)
 
     @staticmethod
     def info_row(info: dict[str, Any], i: int) -> dict[str, Any]:

@@ -105,8 +105,11 @@ class PlanarBLFEnv(gym.Env):
     ``duration`` (s, a whole number of control periods), ``max_torque`` (N m, 150), ``dt`` (s,
     1e-4), ``variations`` (dict of :data:`blf_gym.scenarios.VARIATIONS`; with
     ``scenario="randomized"`` they override the suite's draw), ``reward_weights``,
-    ``render_mode`` ("rgb_array" or "human"). ``reset(options=...)`` takes the same variations
-    per episode, applied last.
+    ``render_mode`` ("rgb_array" or "human"), ``record`` (False; True keeps the episode's
+    1 ms signals for :meth:`trajectory`). ``reset(options=...)`` takes the same variations per
+    episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
+    step, as the sampled baseline policies use); steps without a 1 ms sample then have no
+    tracking or torque term in their reward.
 
     ## Version History
     * v0: initial release.
@@ -160,6 +163,11 @@ class PlanarBLFEnv(gym.Env):
         if self.render_mode == "human":
             self.render()
         return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
+
+    def trajectory(self):
+        """The current episode's signals on the 1 ms grid (a :class:`blf_gym.simulate.Trajectory`,
+        the same type ``simulate()`` returns); needs ``record=True``."""
+        return self.core.trajectory(0)
 
     def render(self):
         if self.render_mode is None:

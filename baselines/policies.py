@@ -1,0 +1,147 @@
+"""The paper's laws as SB3-style policies: ``predict(obs, state, episode_start, deterministic)``.
+
+A :class:`BaselinePolicy` drives the **plain** env (the action is the torque over max_torque)
+from observations alone, so SB3's ``evaluate_policy`` and our evaluation can score a controller
+exactly like a trained agent. It is a *sampled* implementation: it runs its own LESO on the
+measured angles, holds its torque over the env's ``control_period`` and must be used with
+``control_period`` equal to the integration step (0.1 ms), e.g.::
+
+    env = gym.make("PlanarBLF-v0", control_period=1e-4)
+    policy = BaselinePolicy("proposed")
+
+The inner path (``controller=`` in the env, or ``blf_gym.simulate``) evaluates the same compiled
+law at every ODE3 stage instead; the two agree closely but not exactly (SPEC section 6), and the
+evaluation command uses the inner path. BC reads the true velocity, so it needs
+``privileged=True``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from blf_gym.controller import model_length, nominal_model_into, work_length
+from blf_gym.params import BoundParams
+
+from .controllers import ControllerGains, ObserverGains
+from .laws import bc_law, lesobc_law, proposed_law
+from .leso import _leso_ode3
+
+__all__ = ["BaselinePolicy"]
+
+_LAWS = {"bc": bc_law, "lesobc": lesobc_law, "proposed": proposed_law}
+_N = 3
+# observation layout of blf_gym.core.observation_layout (3 joints)
+_Y, _QD_REF, _QD_D, _QDD_D = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+_KA, _KB, _KAD, _KBD = 15, 16, 17, 18
+_TIME = 21
+_QD_TRUE = slice(31, 34)
+_SQ_VEL, _SQ_ACC = 100.0, 1000.0
+
+
+def _unsquash(x: np.ndarray, c: float) -> np.ndarray:
+    return c * np.arctanh(np.clip(x / c, -1 + 1e-12, 1 - 1e-12))
+
+
+class BaselinePolicy:
+    """BC, LESOBC or the proposed law as a policy for the plain ``PlanarBLF-v0`` env."""
+
+    def __init__(
+        self,
+        controller: str = "proposed",
+        dt: float = 1e-4,
+        max_torque: float = 150.0,
+        gains: ControllerGains | None = None,
+        observer: ObserverGains | None = None,
+        bounds: BoundParams | None = None,
+    ) -> None:
+        if controller not in _LAWS:
+            raise ValueError(f"unknown controller {controller!r}; accepted values: {sorted(_LAWS)}")
+        if not (np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
+        if not (np.isfinite(max_torque) and max_torque > 0):
+            raise ValueError(f"max_torque must be a positive number of N m, got {max_torque!r}")
+        self.name = controller
+        self.law = _LAWS[controller]
+        self.gains = gains or ControllerGains()
+        self.obs_gains = observer or ObserverGains()
+        self.bounds = bounds or BoundParams()
+        self.dt = float(dt)
+        self.max_torque = float(max_torque)
+        self._packed_gains = self.gains.pack()
+        self._nominal = self.gains.nominal.pack()
+        self._k0 = np.array([self.obs_gains.k0])
+        self._model = np.empty(model_length(_N))
+        self._work = np.empty(work_length(_N))
+        self._xhat: np.ndarray | None = None
+        self._y_prev: np.ndarray | None = None
+        self._u_prev: np.ndarray | None = None
+
+    def reset(self, num_envs: int = 1) -> None:
+        self._xhat = None
+        self._y_prev = None
+        self._u_prev = np.zeros((num_envs, _N))
+
+    def _laws(self, obs: np.ndarray, starts: np.ndarray) -> np.ndarray:
+        N = obs.shape[0]
+        if self._xhat is None or self._xhat.shape[0] != N:
+            self._xhat = np.zeros((N, 3 * _N))
+            self._y_prev = obs[:, _Y].copy()
+            self._u_prev = np.zeros((N, _N))
+            starts = np.ones(N, dtype=bool)
+        u = np.zeros((N, _N))
+        ref = np.empty(3 * _N)
+        bnd = np.empty(6)
+        for i in range(N):
+            y = obs[i, _Y].astype(np.float64)
+            if starts[i]:
+                self._xhat[i] = 0.0
+                self._xhat[i, :_N] = y
+                self._u_prev[i] = 0.0
+            else:
+                # the observer integrates the last period with the measurement and torque held
+                self._xhat[i] = _leso_ode3(self._xhat[i], self._y_prev[i], self._u_prev[i],
+                                           self._nominal, self._k0, self.dt, self._work)
+            ref[:_N] = obs[i, _QD_REF]
+            ref[_N : 2 * _N] = _unsquash(obs[i, _QD_D].astype(np.float64), _SQ_VEL)
+            ref[2 * _N :] = _unsquash(obs[i, _QDD_D].astype(np.float64), _SQ_ACC)
+            ka, kb = float(obs[i, _KA]), float(obs[i, _KB])
+            kad, kbd = float(obs[i, _KAD]), float(obs[i, _KBD])
+            r = self.bounds.decay_rate  # exponential bounds: k'' = -r k'
+            bnd[:] = (ka, kad, -r * kad, kb, kbd, -r * kbd)
+            if self.name == "bc":
+                if obs.shape[1] < _QD_TRUE.stop:
+                    raise ValueError("BC reads the true velocity: make the env with privileged=True")
+                qd = _unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
+            else:
+                qd = np.zeros(_N)
+            nominal_model_into(y, self._nominal, self._model, self._work)
+            out = np.empty(_N)
+            self.law(0.0, y, qd, self._xhat[i], ref, bnd, self._nominal, self._model,
+                     self._packed_gains, out, self._work)
+            u[i] = np.clip(out, -self.max_torque, self.max_torque)
+            self._y_prev[i] = y
+            self._u_prev[i] = u[i]
+        return u
+
+    def predict(
+        self,
+        observation: np.ndarray,
+        state: Any = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = True,
+    ) -> tuple[np.ndarray, Any]:
+        """SB3's PolicyPredictor interface: actions in [-1, 1] (torque / max_torque)."""
+        obs = np.asarray(observation)
+        single = obs.ndim == 1
+        batch = obs[None] if single else obs
+        if batch.ndim != 2 or batch.shape[1] < 31:
+            raise ValueError(f"expected PlanarBLF observations of shape (31,) or (N, 31+), got {obs.shape}")
+        starts = (np.zeros(batch.shape[0], dtype=bool) if episode_start is None
+                  else np.asarray(episode_start, dtype=bool).reshape(-1))
+        # an observation at t = 0 starts an episode even if the caller does not say so
+        starts = starts | (batch[:, _TIME] == 0.0)
+        u = self._laws(batch, starts)
+        actions = (u / self.max_torque).astype(np.float32)
+        return (actions[0] if single else actions), state
