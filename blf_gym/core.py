@@ -273,8 +273,13 @@ class EnvCore:
             sc = apply_variations(sc, var)
         return sc
 
-    def reset_envs(self, idx: Sequence[int], options: Mapping[str, Any] | None = None) -> None:
-        scs = [self.scenario_for(self.rngs[i], options) for i in idx]
+    def reset_envs(self, idx: Sequence[int], options: Mapping[str, Any] | None = None,
+                   scenarios: Sequence[Scenario] | None = None) -> None:
+        """Reset the arms ``idx``: each draws its scenario (suite, variations, ``options``), or
+        takes the given ``scenarios`` as they are (evaluation on fixed scenarios)."""
+        if scenarios is not None and len(scenarios) != len(idx):
+            raise ValueError("one scenario per reset arm is required")
+        scs = list(scenarios) if scenarios is not None else [self.scenario_for(self.rngs[i], options) for i in idx]
         for i, sc in zip(idx, scs):
             self.scenarios[i] = sc
             self._durations[i] = sc.sim.duration

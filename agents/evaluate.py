@@ -1,0 +1,289 @@
+"""``blf-eval``: score controllers and trained agents on the same scenarios and metrics.
+
+Controllers (``bc``, ``lesobc``, ``proposed``) run on the fast inner path (the law at every ODE3
+stage, all episodes of a controller in one threaded kernel call). Agents are SB3 model zips with
+a metadata JSON beside them (written by ``blf-train``: algorithm, env arguments, plain or
+residual); all their episodes step together in one batched env. Episodes always run their full
+duration with termination off, and violations are counted.
+
+Examples::
+
+    blf-eval                                             # baselines + shipped agents, paper cases
+    blf-eval --controllers proposed --agents runs/sac/model.zip --suite-seeds 20 --out results/
+    blf-eval --scenario-kwargs '{"payload": 0.15}' --duration 10
+
+Writes, with ``--out DIR``: ``results.json`` and ``results.csv`` (SPEC section 8) and PNG plots of
+the tracking error with its bounds and of the torques, per scenario.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from blf_gym.metrics import summarize, write_results
+from blf_gym.params import PRESETS, Scenario, preset
+from blf_gym.scenarios import apply_variations, sample_suite
+
+__all__ = ["main", "evaluate_controller", "evaluate_agent", "build_scenarios", "load_agent"]
+
+CONTROLLERS = ("bc", "lesobc", "proposed")
+PRETRAINED = Path(__file__).resolve().parent / "pretrained"
+EVAL_SEED_OFFSET = 10_000
+"""Randomized-suite evaluation seeds start here, apart from any training seed."""
+
+
+def build_scenarios(
+    presets: Sequence[str], suite_seeds: int, kwargs: dict[str, Any], duration: float | None
+) -> list[tuple[str, list[Scenario]]]:
+    """[(scenario label, episodes)]: each preset is one episode; the suite has ``suite_seeds``."""
+    groups: list[tuple[str, list[Scenario]]] = []
+    sim_over = {"duration": duration} if duration is not None else {}
+    for name in presets:
+        if name not in PRESETS:
+            raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
+        sc = preset(name, **sim_over)
+        if kwargs:
+            sc = replace(apply_variations(sc, kwargs), name=f"{name}+custom")
+        groups.append((sc.name, [sc]))
+    if suite_seeds > 0:
+        eps = []
+        for k in range(suite_seeds):
+            sc = sample_suite(np.random.default_rng(EVAL_SEED_OFFSET + k), preset("paper-0.1hz", **sim_over))
+            if kwargs:
+                sc = apply_variations(sc, kwargs)
+            eps.append(sc)
+        groups.append(("randomized", eps))
+    return groups
+
+
+def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int | None = None):
+    """Trajectories of a baseline controller on the inner path, one per scenario."""
+    from blf_gym.simulate import simulate_batch
+
+    return simulate_batch(scenarios, name, noise_seeds=[EVAL_SEED_OFFSET + i for i in range(len(scenarios))],
+                          threads=threads)
+
+
+def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
+    """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` model zip."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"agent model not found: {path}")
+    meta_path = path.with_name("metadata.json")
+    if not meta_path.is_file():
+        raise ValueError(f"{path}: no metadata.json beside the model; was it written by blf-train?")
+    meta = json.loads(meta_path.read_text())
+    for key in ("algo", "mode", "env_kwargs"):
+        if key not in meta:
+            raise ValueError(f"{meta_path}: metadata lacks {key!r}")
+    import stable_baselines3 as sb3
+
+    algos = {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3}
+    try:
+        from sb3_contrib import TQC
+
+        algos["tqc"] = TQC
+    except ImportError:
+        pass
+    if meta["algo"] not in algos:
+        raise ValueError(f"{path}: unknown algorithm {meta['algo']!r} in metadata; known: {sorted(algos)}")
+    try:
+        model = algos[meta["algo"]].load(path, device="cpu")
+    except Exception as exc:  # SB3 raises several types for a corrupt or foreign zip
+        raise ValueError(f"{path}: cannot be loaded as a {meta['algo'].upper()} model ({exc})") from exc
+    norm = None
+    stats = path.with_name("vecnormalize.pkl")
+    if stats.is_file():
+        import pickle
+
+        with open(stats, "rb") as f:
+            norm = pickle.load(f)
+    return model, meta, norm
+
+
+def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
+                   threads: int | None = None):
+    """Trajectories of a trained agent, all episodes stepped together in one batched env."""
+    from blf_gym.core import EnvCore
+
+    kw = dict(meta["env_kwargs"])
+    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads"):
+        kw.pop(k, None)
+    core = EnvCore(len(scenarios), record=True, terminate_on_violation=False, threads=threads, **kw)
+    for i in range(len(scenarios)):
+        core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + i)
+    core.reset_envs(range(len(scenarios)), scenarios=list(scenarios))
+    obs = core.observe()
+    steps = {int(round(sc.sim.duration / core.control_period)) for sc in scenarios}
+    if len(steps) != 1:
+        raise ValueError("all evaluation scenarios of an agent must share one duration")
+    for _ in range(steps.pop()):
+        o = norm.normalize_obs(obs) if norm is not None else obs
+        action, _ = model.predict(o, deterministic=True)
+        obs, *_ = core.step(action)
+    return [core.trajectory(i) for i in range(len(scenarios))]
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--controllers", nargs="*", default=list(CONTROLLERS), metavar="NAME",
+                   help=f"baseline controllers to score (default: {' '.join(CONTROLLERS)}; none with an empty list)")
+    p.add_argument("--agents", nargs="*", default=None, metavar="ZIP",
+                   help="trained agents (model zips from blf-train); default: the shipped ones in agents/pretrained")
+    p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
+                   help=f"paper presets (default: {' '.join(sorted(PRESETS))})")
+    p.add_argument("--suite-seeds", type=int, default=0,
+                   help="also run the randomized suite with this many held-out seeds")
+    p.add_argument("--scenario-kwargs", type=str, default="{}",
+                   help='JSON of scenario variations, e.g. \'{"payload": 0.15, "force": 20}\'')
+    p.add_argument("--duration", type=float, default=None, help="episode length in s (default 30)")
+    p.add_argument("--threads", type=int, default=None, help="threads for the batched simulations")
+    p.add_argument("--out", type=Path, default=None, help="folder for results.json, results.csv and plots")
+    p.add_argument("--save-traj", action="store_true", help="with --out: also save trajectories (npz)")
+    p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return p
+
+
+def _table(records: Sequence[dict[str, Any]]) -> str:
+    head = (f"{'policy':<16} {'kind':<8} {'scenario':<14} {'ep':>3} | {'RMSE j1':>8} {'j2':>8} {'j3':>8} | "
+            f"{'viol':>6} {'frac':>7} {'fail':>5} | {'CVaR':>7} | {'excess':>7} {'margin':>7} | "
+            f"{'1st viol':>8} | {'u rms':>16} {'u peak':>17}")
+    lines = [head, "-" * len(head)]
+    for r in records:
+        def f3(v, p=4):
+            return " ".join(("-" if x is None else f"{x:.{p}f}").rjust(8) for x in v)
+        viol = sum(v for v in r["violations"] if v is not None)
+        frac = max((v for v in r["violation_fraction"] if v is not None), default=0.0)
+        exc = max((v for v in r["max_excursion_deg"] if v is not None), default=0.0)
+        mar = min((v for v in r["min_margin_deg"] if v is not None), default=0.0)
+        fv = "-" if r["first_violation_s"] is None else f"{r['first_violation_s']:.3f}"
+        cvar = "-" if r["rmse_cvar_deg"] is None else f"{r['rmse_cvar_deg']:.4f}"
+        urms = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_rms"])
+        upk = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_peak"])
+        lines.append(
+            f"{r['policy']:<16} {r['kind']:<8} {r['scenario']:<14} {r['episodes']:>3} | {f3(r['rmse_deg'])} | "
+            f"{viol:>6} {frac:>7.4f} {r['failure_rate']:>5.2f} | {cvar:>7} | {exc:>7.3f} {mar:>7.3f} | "
+            f"{fv:>8} | {urms:>16} {upk:>17}" + ("  DIVERGED" if r["diverged"] else ""))
+    return "\n".join(lines)
+
+
+def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[Path]:
+    """Tracking error with bounds per joint (as the paper's Figures 6 and 10), and torques."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from blf_gym.io import atomic_path
+
+    written = []
+    scenarios = sorted({r["scenario"] for r, _ in results})
+    for sc in scenarios:
+        rows = [(r, trajs[0]) for r, trajs in results if r["scenario"] == sc and trajs and trajs[0].n_samples]
+        if not rows:
+            continue
+        for kind in ("error", "torque"):
+            fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
+            for j, ax in enumerate(axes):
+                for r, tr in rows:
+                    y = np.degrees(tr.e1[:, j]) if kind == "error" else tr.u[:, j]
+                    ax.plot(tr.t, y, lw=0.8, label=r["policy"])
+                if kind == "error":
+                    tr = rows[0][1]
+                    ax.plot(tr.t, np.degrees(tr.k_a[:, j]), "k--", lw=0.8, label="bounds")
+                    ax.plot(tr.t, -np.degrees(tr.k_b[:, j]), "k--", lw=0.8)
+                    # zoom on the steady bounds (they start at 29-34 deg and decay to 1-2 deg)
+                    ax.set_ylim(-3 * np.degrees(tr.k_b[-1, j]), 3 * np.degrees(tr.k_a[-1, j]))
+                    ax.set_ylabel(f"e1_{j + 1} (deg)")
+                else:
+                    ax.set_ylabel(f"u_{j + 1} (N m)")
+                ax.grid(alpha=0.3)
+            axes[0].legend(loc="upper right", fontsize=8, ncol=4)
+            axes[0].set_title(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
+                              + (" (first episode)" if sc == "randomized" else ""))
+            axes[-1].set_xlabel("t (s)")
+            fig.tight_layout()
+            path = out / f"{kind}_{sc}.png"
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, dpi=110, format="png")
+            plt.close(fig)
+            written.append(path)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        kwargs = json.loads(args.scenario_kwargs)
+        if not isinstance(kwargs, dict):
+            raise ValueError("--scenario-kwargs must be a JSON object")
+        for c in args.controllers:
+            if c not in CONTROLLERS:
+                raise ValueError(f"unknown controller {c!r}; accepted values: {list(CONTROLLERS)}")
+        groups = build_scenarios(args.scenarios, args.suite_seeds, kwargs, args.duration)
+        if not groups:
+            raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
+        agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
+                       else [Path(a) for a in args.agents])
+        agents = [(p, *load_agent(p)) for p in agent_paths]
+    except (ValueError, json.JSONDecodeError) as exc:
+        print(f"blf-eval: error: {exc}", file=sys.stderr)
+        return 2
+    if args.save_traj and args.out is None:
+        print("blf-eval: error: --save-traj needs --out DIR", file=sys.stderr)
+        return 2
+
+    jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
+    jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
+    bar = None
+    if not args.no_progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
+    results: list[tuple[dict[str, Any], list[Any]]] = []
+    try:
+        for name, kind, agent in jobs:
+            for label, scs in groups:
+                if bar is not None:
+                    bar.set_postfix_str(f"{name} / {label}")
+                t0 = time.perf_counter()
+                trajs = (evaluate_controller(name, scs, args.threads) if agent is None
+                         else evaluate_agent(*agent, scs, args.threads))
+                rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=time.perf_counter() - t0)
+                results.append((rec, trajs))
+                if bar is not None:
+                    bar.update(1)
+                if args.out is not None:  # finished records are kept if the run is interrupted
+                    write_results([r for r, _ in results], args.out)
+    except KeyboardInterrupt:
+        print("\nblf-eval: interrupted" + ("; finished records were saved" if args.out else ""), file=sys.stderr)
+        return 130
+    finally:
+        if bar is not None:
+            bar.close()
+    records = [r for r, _ in results]
+    print(_table(records))
+    if args.out is not None:
+        write_results(records, args.out)
+        written = [] if args.no_plots else _plots(results, args.out)
+        if args.save_traj:
+            for rec, trajs in results:
+                for k, tr in enumerate(trajs):
+                    tr.save_npz(args.out / "traj" / f"{rec['scenario']}__{rec['policy']}__{k}.npz")
+        print(f"wrote {args.out / 'results.json'}, {args.out / 'results.csv'}"
+              + (f" and {len(written)} plots" if written else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,164 @@
+"""agents: blf-train (every algorithm x mode, resume), the SB3 VecEnv adapter, and blf-eval."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+
+from agents.evaluate import load_agent, main as eval_main  # noqa: E402
+from agents.train import load_config, main as train_main  # noqa: E402
+from agents.vec_env import BLFVecEnv  # noqa: E402
+
+TINY = """
+n_envs: 2
+normalize: {normalize}
+env:
+  control_period: 0.01
+  residual_scale: 2.0
+  duration: 0.2
+hyperparams: {hyper}
+policy_kwargs:
+  net_arch: [16, 16]
+eval_freq: 100
+checkpoint_freq: 100
+"""
+HYPER = {
+    "ppo": "{n_steps: 32, batch_size: 32, n_epochs: 1}",
+    "sac": "{learning_starts: 0, batch_size: 32, buffer_size: 2000}",
+    "td3": "{learning_starts: 0, batch_size: 32, buffer_size: 2000}",
+    "tqc": "{learning_starts: 0, batch_size: 32, buffer_size: 2000}",
+}
+
+
+def _tiny(tmp_path: Path, algo: str, normalize: bool = True) -> Path:
+    p = tmp_path / f"{algo}.yaml"
+    p.write_text(TINY.format(normalize=str(normalize).lower(), hyper=HYPER[algo]))
+    return p
+
+
+@pytest.mark.parametrize("mode", ["plain", "residual"])
+@pytest.mark.parametrize("algo", ["ppo", "sac", "td3", "tqc"])
+def test_tiny_training_through_the_cli(tmp_path, algo, mode):
+    if algo == "tqc":
+        pytest.importorskip("sb3_contrib")
+    out = tmp_path / "run"
+    rc = train_main(["--algo", algo, "--mode", mode, "--timesteps", "128", "--config",
+                     str(_tiny(tmp_path, algo)), "--out", str(out), "--no-progress"])
+    assert rc == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["algo"] == algo and meta["mode"] == mode and meta["timesteps"] >= 128
+    assert meta["seed"] == 0 and "torch" in meta["versions"] and meta["wall_s"] > 0
+    assert (meta["env_kwargs"].get("controller") == "proposed") == (mode == "residual")
+    assert (out / "model.zip").is_file() and (out / "vecnormalize.pkl").is_file()
+    assert any((out / "tb").rglob("events.out.tfevents*"))
+    assert any((out / "checkpoints").glob("model_*_steps.zip"))
+
+
+def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
+    out = tmp_path / "run"
+    cfg = str(_tiny(tmp_path, "sac"))
+    assert train_main(["--algo", "sac", "--timesteps", "200", "--config", cfg, "--out", str(out),
+                       "--no-progress"]) == 0
+    # the latest checkpoint is at 200 steps; resume to 400
+    assert train_main(["--algo", "sac", "--timesteps", "400", "--config", cfg, "--out", str(out),
+                       "--resume", "--no-progress"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["timesteps"] == 400 and meta["completed"]
+    steps = sorted(int(f.stem.split("_")[1]) for f in (out / "checkpoints").glob("model_*_steps.zip"))
+    assert steps[-1] == 400 and 300 in steps  # saved after the resume point, not from zero
+    model, meta, norm = load_agent(out / "model.zip")
+    model.load_replay_buffer(out / "checkpoints" / "model_replay_buffer_400_steps.pkl")
+    # a row per vector step of the 2 envs: 400 steps = 200 rows if the resumed run kept the first
+    # 100 rows, 100 if it had started from an empty buffer. SB3 stores a step's transition after
+    # the checkpoint callback has run, so each checkpoint is one row short (198).
+    assert model.replay_buffer.size() == 198
+
+
+def test_save_load_round_trip_gives_identical_deterministic_actions(tmp_path):
+    out = tmp_path / "run"
+    assert train_main(["--algo", "sac", "--timesteps", "64", "--config", str(_tiny(tmp_path, "sac")),
+                       "--out", str(out), "--no-progress"]) == 0
+    model, meta, norm = load_agent(out / "model.zip")
+    model2, _, _ = load_agent(out / "model.zip")
+    obs = np.random.default_rng(0).normal(size=(5, 31)).astype(np.float32)
+    a1, _ = model.predict(obs, deterministic=True)
+    a2, _ = model2.predict(obs, deterministic=True)
+    np.testing.assert_array_equal(a1, a2)
+
+
+def test_bad_training_input_is_named(tmp_path, capsys):
+    assert train_main(["--algo", "sac", "--mode", "residual", "--controller", "pid", "--timesteps", "10",
+                       "--out", str(tmp_path / "x")]) == 2
+    assert "pid" in capsys.readouterr().err
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("n_envs: 1\nlearning_rat: 0.1\n")
+    with pytest.raises(ValueError, match="learning_rat"):
+        load_config(bad)
+    bad.write_text("env:\n  controll_period: 0.01\n")
+    with pytest.raises(ValueError, match="controll_period"):
+        load_config(bad)
+    assert train_main(["--algo", "sac", "--timesteps", "10", "--resume", "--out", str(tmp_path / "none")]) == 2
+
+
+def test_vecenv_adapter_hands_back_terminal_observation():
+    venv = BLFVecEnv(3, seed=0, controller="proposed", duration=0.03)
+    obs = venv.reset()
+    assert obs.shape == (3, 31)
+    for k in range(3):
+        obs, rew, dones, infos = venv.step(np.zeros((3, 3), dtype=np.float32))
+    assert dones.all()
+    for info in infos:
+        assert info["TimeLimit.truncated"] is True
+        assert info["terminal_observation"].shape == (31,)
+        assert info["time"] == pytest.approx(0.03)  # the ended episode's info, not the new one's
+    assert not np.array_equal(obs[0], infos[0]["terminal_observation"])  # obs is the new episode
+
+
+def test_eval_cli_end_to_end_with_an_agent(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert train_main(["--algo", "td3", "--mode", "residual", "--timesteps", "64", "--config",
+                       str(_tiny(tmp_path, "td3")), "--out", str(run), "--no-progress"]) == 0
+    out = tmp_path / "eval"
+    rc = eval_main(["--controllers", "proposed", "lesobc", "--agents", str(run / "model.zip"),
+                    "--duration", "0.5", "--suite-seeds", "2", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    data = json.loads((out / "results.json").read_text())
+    assert data["schema_version"] == 1
+    recs = data["records"]
+    # 3 policies x (2 presets + the suite)
+    assert len(recs) == 9
+    kinds = {r["policy"]: r["kind"] for r in recs}
+    assert kinds["proposed"] == "baseline" and kinds["run"] == "residual"
+    suite = [r for r in recs if r["scenario"] == "randomized"]
+    assert all(r["episodes"] == 2 for r in suite)
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 9 and "rmse_deg_3" in rows[0]
+    for png in out.glob("*.png"):
+        assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(list(out.glob("*.png"))) == 6  # error and torque per scenario
+    printed = capsys.readouterr().out
+    assert "proposed" in printed and "run" in printed
+
+
+def test_eval_bad_input_is_named(tmp_path, capsys):
+    assert eval_main(["--agents", str(tmp_path / "missing.zip"), "--no-progress"]) == 2
+    assert "missing.zip" in capsys.readouterr().err
+    junk = tmp_path / "junk" / "model.zip"
+    junk.parent.mkdir()
+    junk.write_bytes(b"not a zip")
+    (junk.parent / "metadata.json").write_text(json.dumps({"algo": "sac", "mode": "plain", "env_kwargs": {}}))
+    assert eval_main(["--agents", str(junk), "--no-progress"]) == 2
+    assert "cannot be loaded" in capsys.readouterr().err
+    assert eval_main(["--controllers", "pid", "--agents", "--no-progress"]) == 2
+    assert "pid" in capsys.readouterr().err
+    assert eval_main(["--scenarios", "moon", "--agents", "--no-progress"]) == 2
+    assert "moon" in capsys.readouterr().err
+    assert eval_main(["--scenario-kwargs", '{"colour": 1}', "--agents", "--no-progress"]) == 2
+    assert "colour" in capsys.readouterr().err
