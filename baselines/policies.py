@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from blf_gym.controller import model_length, nominal_model_into, work_length
+from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index
 from blf_gym.params import BoundParams
 
 from .controllers import ControllerGains, ObserverGains
@@ -32,12 +33,13 @@ __all__ = ["BaselinePolicy"]
 
 _LAWS = {"bc": bc_law, "lesobc": lesobc_law, "proposed": proposed_law}
 _N = 3
-# observation layout of blf_gym.core.observation_layout (3 joints)
-_Y, _QD_REF, _QD_D, _QDD_D = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
-_KA, _KB, _KAD, _KBD = 15, 16, 17, 18
-_TIME = 21
-_QD_TRUE = slice(31, 34)
-_SQ_VEL, _SQ_ACC = 100.0, 1000.0
+_IDX = observation_index(_N)
+_Y, _QD_REF, _QD_D, _QDD_D = _IDX["y"], _IDX["q_d"], _IDX["qd_d"], _IDX["qdd_d"]
+_KA, _KB = _IDX["k_a"].start, _IDX["k_b"].start
+_KAD, _KBD = _IDX["k_a_rate"].start, _IDX["k_b_rate"].start
+_TIME = _IDX["time"].start
+_QD_TRUE = _IDX["qd"]
+_SQ_VEL, _SQ_ACC = SQUASH_VELOCITY, SQUASH_REF_ACCELERATION
 
 
 def _unsquash(x: np.ndarray, c: float) -> np.ndarray:

@@ -29,7 +29,8 @@ from .simulate import (
     divergence_message,
 )
 
-__all__ = ["RewardWeights", "EnvCore", "observation_layout"]
+__all__ = ["RewardWeights", "EnvCore", "observation_layout", "observation_index", "SQUASH_VELOCITY",
+           "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
 
@@ -70,12 +71,32 @@ class RewardWeights:
                 f"so that a violation never pays; got {self.alive!r}")
 
 
-# Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries.
-_SQ_VEL = 100.0
-_SQ_ACC_REF = 1000.0
-_SQ_DIST = 1.0e4
+# Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
+SQUASH_VELOCITY = 100.0
+"""c for velocities (qd_d, x2_hat, privileged qd), rad/s."""
+SQUASH_REF_ACCELERATION = 1000.0
+"""c for the reference acceleration qdd_d, rad/s^2."""
+SQUASH_DISTURBANCE = 1.0e4
+"""c for lumped disturbances (x3_hat, privileged x3), rad/s^2."""
+_SQ_VEL = SQUASH_VELOCITY
+_SQ_ACC_REF = SQUASH_REF_ACCELERATION
+_SQ_DIST = SQUASH_DISTURBANCE
 _ANGLE_CLIP = 4.0 * math.pi
 _ERR_CLIP = 10.0
+
+
+def observation_index(n: int = 3) -> dict[str, slice]:
+    """Where each group of :func:`observation_layout` sits in the observation vector."""
+    k = 5 * n
+    return {
+        "y": slice(0, n), "q_d": slice(n, 2 * n), "qd_d": slice(2 * n, 3 * n),
+        "qdd_d": slice(3 * n, 4 * n), "e1_normalized": slice(4 * n, 5 * n),
+        "k_a": slice(k, k + 1), "k_b": slice(k + 1, k + 2), "k_a_rate": slice(k + 2, k + 3),
+        "k_b_rate": slice(k + 3, k + 4), "phase": slice(k + 4, k + 6), "time": slice(k + 6, k + 7),
+        "u": slice(k + 7, k + 7 + n), "x2_hat": slice(k + 7 + n, k + 7 + 2 * n),
+        "x3_hat": slice(k + 7 + 2 * n, k + 7 + 3 * n),
+        "qd": slice(k + 7 + 3 * n, k + 7 + 4 * n), "x3": slice(k + 7 + 4 * n, k + 7 + 5 * n),
+    }
 
 
 def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, str, float, float]]:

@@ -676,3 +676,15 @@ def test_unknown_keyword_argument_is_a_value_error_listing_the_accepted_ones():
         gym.make("PlanarBLF-v0", bogus=1)
     with pytest.raises(ValueError, match="bogus"):
         gym.make_vec("PlanarBLF-v0", num_envs=2, bogus=1)
+
+
+def test_observation_index_matches_the_layout_table():
+    from blf_gym.core import observation_index
+
+    rows = observation_layout(3, privileged=True)
+    idx = observation_index(3)
+    assert rows[idx["qd_d"].start][0].startswith("qd_d_1")
+    assert rows[idx["k_a_rate"].start][0] == "k_a'"
+    assert rows[idx["time"].start][0] == "t / duration"
+    assert rows[idx["x3_hat"].start][0].startswith("x3_hat_1")
+    assert rows[idx["qd"].start][0].startswith("qd_1 true") and idx["x3"].stop == len(rows)
