@@ -326,3 +326,16 @@ def test_read_results_checks_the_schema_version(tmp_path):
     p.write_text(json.dumps({"records": []}))
     with pytest.raises(ValueError, match="schema_version"):
         read_results(p)
+
+
+def test_written_files_have_ordinary_permissions(tmp_path):
+    import os
+    import stat
+
+    from blf_gym.io import atomic_write_text
+
+    atomic_write_text(tmp_path / "a.txt", "x")
+    umask = os.umask(0)
+    os.umask(umask)
+    mode = stat.S_IMODE(os.stat(tmp_path / "a.txt").st_mode)
+    assert mode == 0o666 & ~umask  # not mkstemp's 0600
