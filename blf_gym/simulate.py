@@ -635,8 +635,7 @@ class ClosedLoop:
             )
             if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
                 raise ValueError("controller/observer nominal model must have as many links as the plant")
-            self._obs_nominal_differs = self.observer.nominal.pack().tolist() != self.controller.nominal.pack().tolist()
-            if self._obs_nominal_differs:
+            if not np.array_equal(self.observer.nominal.pack(), self.controller.nominal.pack()):
                 raise ValueError("the controller and the observer must share one nominal model")
         b = self._batch
         for i, sc in zip(idx, scenarios):
