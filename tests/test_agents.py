@@ -162,3 +162,31 @@ def test_eval_bad_input_is_named(tmp_path, capsys):
     assert "moon" in capsys.readouterr().err
     assert eval_main(["--scenario-kwargs", '{"colour": 1}', "--agents", "--no-progress"]) == 2
     assert "colour" in capsys.readouterr().err
+
+
+def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "run"
+    cfg = str(_tiny(tmp_path, "sac"))
+    proc = subprocess.Popen([sys.executable, "-m", "agents.train", "--algo", "sac", "--timesteps", "1000000",
+                             "--config", cfg, "--out", str(out), "--no-progress"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list((out / "checkpoints").glob("model_*_steps.zip")):
+        time.sleep(0.5)
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert "interrupted" in err
+    meta = json.loads((out / "metadata.json").read_text())
+    assert not meta["completed"]  # the model and metadata of an interrupted run are still written
+    ckpts = sorted(int(f.stem.split("_")[1]) for f in (out / "checkpoints").glob("model_*_steps.zip"))
+    target = ckpts[-1] + 200
+    assert train_main(["--algo", "sac", "--timesteps", str(target), "--config", cfg, "--out", str(out),
+                       "--resume", "--no-progress"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["timesteps"] == target and meta["completed"]
