@@ -2,13 +2,15 @@
 
 One compiled kernel serves everything: the reproduction (one arm, a whole 30 s episode per call),
 the Gymnasium env (one arm, one agent period per call) and the vector env (N arms per call, split
-over threads: the compiled kernel releases the GIL). It is specialised per (controller law, observer) pair by cloning the template
-functions below with the law and observer bound as globals, then compiled by numba with
-``cache=True`` so a warm start loads machine code from disk.
+over threads: the compiled kernel releases the GIL). It is specialised per (controller law,
+observer) pair by cloning the template functions below with the law and observer bound as
+globals, then compiled by numba with ``cache=True`` so a warm start loads machine code from disk.
 
 Integration (SPEC section 6): Bogacki-Shampine ODE3, fixed step h, with the law and the observer
-evaluated at every stage. The measured angles (true angles plus optional noise) are held over a
-step. Constraints are checked after every step; trajectories and metrics use the 1 ms grid.
+evaluated at every stage on the measured angles y = q(stage) + noise (the noise sample is held
+over a step). Constraints are checked after every step; trajectories and metrics use the 1 ms
+grid. A step outside ODE3's stability region is detected from the method's embedded error
+estimate, even when the actuator limit keeps the state finite.
 
 State layout per arm, ``X[b]`` (5n): ``[q, qd, x1_hat, x2_hat, x3_hat]``.
 """
@@ -577,7 +579,8 @@ class ClosedLoop:
     """N arms with one controller and one observer, stepped by the compiled kernel.
 
     Each arm has its own scenario (plant, reference, bounds); all share ``dt``. The state, the
-    global step counter and the last applied torques live here; :meth:`advance` runs the kernel.
+    global step counter and the last applied torques live here; :meth:`advance` runs the kernel,
+    splitting the arms over ``threads`` (default: one per CPU, at most one per arm).
     """
 
     def __init__(
