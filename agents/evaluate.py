@@ -224,7 +224,11 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
 def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     try:
-        kwargs = json.loads(args.scenario_kwargs)
+        try:
+            kwargs = json.loads(args.scenario_kwargs)
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--scenario-kwargs is not valid JSON ({exc}); example: "
+                             '\'{"payload": 0.15}\'') from exc
         if not isinstance(kwargs, dict):
             raise ValueError("--scenario-kwargs must be a JSON object")
         for c in args.controllers:
@@ -236,7 +240,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
                        else [Path(a) for a in args.agents])
         agents = [(p, *load_agent(p)) for p in agent_paths]
-    except (ValueError, json.JSONDecodeError) as exc:
+        if not args.controllers and not agents:
+            raise ValueError("nothing to evaluate: give --controllers and/or --agents")
+    except ValueError as exc:
         print(f"blf-eval: error: {exc}", file=sys.stderr)
         return 2
     if args.save_traj and args.out is None:
@@ -273,6 +279,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             bar.close()
     records = [r for r, _ in results]
     print(_table(records))
+    print("\nRMSE, CVaR (mean RMSE of the worst half of the episodes), excess (largest distance "
+          "beyond a bound) and margin (closest approach to a bound, negative when beyond) are in "
+          "degrees; viol is the number of violating 1 ms samples summed over the joints, frac the "
+          "worst joint's violating fraction, fail the share of episodes with a violation, 1st viol "
+          "the earliest violation (s); torques in N m per joint.")
     if args.out is not None:
         write_results(records, args.out)
         written = [] if args.no_plots else _plots(results, args.out)

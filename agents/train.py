@@ -134,7 +134,7 @@ def _make_progress_callback(total: int, start: int, enabled: bool):
 def train(
     algo: str = "sac",
     mode: str = "residual",
-    controller: str = "proposed",
+    controller: str | None = None,
     scenario: str = "paper-0.1hz",
     timesteps: int = 100_000,
     seed: int = 0,
@@ -154,10 +154,15 @@ def train(
     from blf_gym.controller import available_controllers
     from blf_gym.scenarios import resolve_scenario
 
+    if mode == "plain" and controller is not None:
+        raise ValueError("--controller applies to --mode residual only (plain mode has no inner law)")
+    controller = controller or "proposed"
     if mode == "residual" and controller not in available_controllers():
         raise ValueError(f"unknown controller {controller!r}; accepted values: {available_controllers()}")
     resolve_scenario(scenario)
     out = Path(out)
+    if not resume and (out / "metadata.json").exists():
+        raise ValueError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
     cfg_path = Path(config) if config else CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
     cfg = load_config(cfg_path)
     env_kwargs: dict[str, Any] = {"scenario": scenario, **(cfg.get("env") or {})}
@@ -270,11 +275,12 @@ def train(
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-train", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--algo", default="sac", choices=ALGOS, help="SB3 algorithm (tqc needs sb3-contrib)")
     p.add_argument("--mode", default="residual", choices=MODES,
                    help="plain: the action is the torque; residual: added to the inner law")
-    p.add_argument("--controller", default="proposed", help="inner law in residual mode: bc, lesobc, proposed")
+    p.add_argument("--controller", default=None,
+                   help="inner law in residual mode: bc, lesobc, proposed (default proposed)")
     p.add_argument("--scenario", default="paper-0.1hz",
                    help="training scenario: paper-0.1hz, paper-0.5hz or randomized")
     p.add_argument("--timesteps", type=int, default=100_000, help="total agent steps (10 ms each by default)")

@@ -135,7 +135,7 @@ def format_table(results: Sequence[tuple[dict[str, Any], Any]]) -> str:
         peak = "/".join(f"{v:.1f}" for v in rec["torque_peak"]) if rec["torque_peak"][0] is not None else "-"
         note = ""
         if tr.diverged:
-            note = f"DIVERGED at t = {tr.diverged_at:.4f} s"
+            note = "DIVERGED (see the warning below)"
         elif any(f > 0 for f in rec["saturated_fraction"]):
             note = "torque limit clipped"
         lines.append(

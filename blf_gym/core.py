@@ -16,7 +16,7 @@ from .bounds import bounds_into
 from .controller import NO_CONTROLLER, InnerController, make_controller
 from .params import Scenario
 from .reference import reference_into
-from .scenarios import apply_variations, resolve_scenario, sample_suite
+from .scenarios import VARIATIONS, apply_variations, resolve_scenario, sample_suite
 from .simulate import (
     ST_DIVERGED,
     ST_SAT_STEPS,
@@ -286,11 +286,9 @@ class EnvCore:
                 sc = apply_variations(sc, self.variations)
         if options:
             opts = dict(options)
-            var = {k: opts.pop(k) for k in list(opts) if k in ("frequency", "force", "force_onset",
-                   "friction_scale", "dead_zone_scale", "payload", "initial_error", "angle_noise_std")}
+            var = {k: opts.pop(k) for k in list(opts) if k in VARIATIONS}
             if opts:
-                raise ValueError(f"unknown reset option(s) {sorted(opts)}; accepted: the variations "
-                                 "of blf_gym.scenarios.VARIATIONS")
+                raise ValueError(f"unknown reset option(s) {sorted(opts)}; accepted: {list(VARIATIONS)}")
             sc = apply_variations(sc, var)
         return sc
 
@@ -321,7 +319,7 @@ class EnvCore:
         a = a.reshape(self.num_envs, self.n)
         lo, hi = a.min(), a.max()
         if not (np.isfinite(lo) and np.isfinite(hi)):
-            raise ValueError(f"action must be finite, got {a.tolist()}")
+            raise ValueError(f"action must be finite, got {np.asarray(actions).tolist()}")
         if lo < -1.0 or hi > 1.0:
             a = np.minimum(np.maximum(a, -1.0), 1.0)
         return a
@@ -383,7 +381,8 @@ class EnvCore:
         }
         if np.any(diverged):
             info["diverged_message"] = np.array(
-                [divergence_message(int(d), float(t), self.sim.dt) or None for d, t in zip(diverged, t_end)],
+                [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps) or None
+                 for d, t in zip(diverged, t_end)],
                 dtype=object)
         self.done[:] = terminated | truncated
         obs = self.observe(info)

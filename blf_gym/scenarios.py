@@ -75,7 +75,9 @@ def _check(name: str, value: float, strict: bool) -> None:
         raise ValueError(f"variation {name!r} must be finite, got {value!r}")
     if strict and not (lo <= value <= hi):
         raise ValueError(f"variation {name!r}={value!r} is outside its safe range [{lo}, {hi}] "
-                         "(see blf_gym.scenarios); pass strict=False to run it anyway")
+                         "(see blf_gym.scenarios). To run it anyway, build the Scenario with "
+                         "blf_gym.scenarios.apply_variations(scenario, {...}, strict=False) and pass "
+                         "it as scenario=")
 
 
 def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True) -> Scenario:

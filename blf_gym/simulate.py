@@ -736,22 +736,27 @@ class ClosedLoop:
         return rec, nrec, status
 
 
-def divergence_message(code: int, t: float, dt: float) -> str:
-    """Human-readable reason for a kernel divergence code (status column ``diverged``)."""
+def divergence_message(code: int, t: float, dt: float, unstable_steps: int = 100) -> str:
+    """Human-readable reason for a kernel divergence code (status column ``diverged``).
+
+    For code 2 the run is stopped ``unstable_steps`` steps after the instability began; the
+    message gives both times."""
     if code == 1:
         return (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
                 f"SimParams.divergence_limit. Either the step dt = {dt} s is too large for the "
                 f"controller's gains, or the applied torques (e.g. large plain-mode actions with "
                 f"termination off) or the plant parameters drive the arm to extreme speeds; the "
-                f"signals up to that time are kept")
+                f"signals up to that time are kept.")
     if code == 2:
-        return (f"simulation diverged numerically at t = {t:.6f} s: ODE3's embedded error estimate "
+        onset = max(0.0, t - unstable_steps * dt)
+        return (f"simulation diverged numerically (unstable from t = {onset:.6f} s, stopped at "
+                f"t = {t:.6f} s): ODE3's embedded error estimate "
                 f"stayed above tolerance for SimParams.unstable_steps consecutive steps, so dt = "
                 f"{dt} s is outside the integrator's stability region for this closed loop (the "
                 f"actuator limit kept the state finite, but the numbers are meaningless). With a "
                 f"controller, use a smaller dt (0.1 ms for the paper's gains); in plain mode, the "
                 f"actions may be spinning the arm up to extreme speeds. The signals up to that "
-                f"time are kept")
+                f"time are kept.")
     return ""
 
 
@@ -764,7 +769,7 @@ def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec:
     diverged = code != 0
     steps = int(status[ST_STEPS])
     fv = int(status[ST_FIRST_VIOL])
-    msg = divergence_message(code, steps * dt, dt)
+    msg = divergence_message(code, steps * dt, dt, sc.sim.unstable_steps)
     return Trajectory(
         scenario=sc.name, controller=controller, dt=dt, signals=signals, diverged=diverged,
         diverged_at=steps * dt if diverged else None,

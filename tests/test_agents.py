@@ -190,3 +190,23 @@ def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
                        "--resume", "--no-progress"]) == 0
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["timesteps"] == target and meta["completed"]
+
+
+def test_cli_guards_against_silent_mistakes(tmp_path, capsys):
+    run = tmp_path / "run"
+    cfg = str(_tiny(tmp_path, "sac"))
+    assert train_main(["--algo", "sac", "--timesteps", "32", "--config", cfg, "--out", str(run),
+                       "--no-progress"]) == 0
+    # a second run into the same folder would silently overwrite it
+    assert train_main(["--algo", "sac", "--timesteps", "32", "--config", cfg, "--out", str(run),
+                       "--no-progress"]) == 2
+    assert "--resume" in capsys.readouterr().err
+    # --controller means nothing in plain mode
+    assert train_main(["--algo", "sac", "--mode", "plain", "--controller", "lesobc", "--timesteps", "32",
+                       "--config", cfg, "--out", str(tmp_path / "p"), "--no-progress"]) == 2
+    assert "residual only" in capsys.readouterr().err
+    # nothing to evaluate, and malformed JSON, are named
+    assert eval_main(["--controllers", "--agents", "--no-progress"]) == 2
+    assert "nothing to evaluate" in capsys.readouterr().err
+    assert eval_main(["--scenario-kwargs", "{payload: 5}", "--agents", "--no-progress"]) == 2
+    assert "--scenario-kwargs" in capsys.readouterr().err
