@@ -34,10 +34,6 @@ __all__ = ["RewardWeights", "EnvCore", "observation_layout", "observation_index"
 
 
 
-def _scalar(v: Any) -> Any:
-    """numpy scalars to Python scalars; arrays stay arrays."""
-    return v.item() if isinstance(v, np.generic) else v
-
 
 @dataclass(frozen=True)
 class RewardWeights:
@@ -407,10 +403,12 @@ class EnvCore:
         """Arm i's info as a plain dict (what the single env returns)."""
         out: dict[str, Any] = {}
         for k, v in info.items():
-            if isinstance(v, dict):
-                out[k] = {kk: _scalar(vv[i]) for kk, vv in v.items()}
+            if type(v) is dict:
+                out[k] = {kk: vv.item(i) for kk, vv in v.items()}
+            elif v.ndim == 1:
+                out[k] = v.item(i)  # a Python scalar (or the object itself)
             else:
-                out[k] = _scalar(v[i])
+                out[k] = v[i]
         return out
 
     # ------------------------------------------------------------------ observation
