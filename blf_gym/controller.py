@@ -101,6 +101,17 @@ def zero_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u_out, work):
         u_out[i] = 0.0
 
 
+def _checked_plugin(fn_field: str, fn: Any, gains_field: str, gains: Any) -> np.ndarray:
+    """Check a plug-in's compiled function and return its gains as a flat float64 array."""
+    if not hasattr(fn, "py_func"):
+        raise ValueError(f"{fn_field} must be a numba @njit function with the signature documented "
+                         f"in blf_gym.controller, got {type(fn).__name__}")
+    g = np.ascontiguousarray(np.asarray(gains, dtype=np.float64)).ravel()
+    if not np.all(np.isfinite(g)):
+        raise ValueError(f"{gains_field} must be finite, got {g}")
+    return g
+
+
 @dataclass(frozen=True, eq=False)
 class InnerController:
     """A control law that runs inside the compiled closed loop at every ODE3 stage."""
@@ -117,15 +128,8 @@ class InnerController:
     """True if the law reads the true velocity (BC); documented so results can say so."""
 
     def __post_init__(self) -> None:
-        if not hasattr(self.law, "py_func"):
-            raise ValueError(
-                f"InnerController.law must be a numba @njit function with the law signature "
-                f"(see blf_gym.controller), got {type(self.law).__name__}"
-            )
-        g = np.ascontiguousarray(np.asarray(self.gains, dtype=np.float64)).ravel()
-        if not np.all(np.isfinite(g)):
-            raise ValueError(f"InnerController.gains must be finite, got {g}")
-        object.__setattr__(self, "gains", g)
+        object.__setattr__(self, "gains", _checked_plugin("InnerController.law", self.law,
+                                                          "InnerController.gains", self.gains))
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,12 +145,8 @@ class Observer:
     """Maps the initial measured angles (n,) to xhat(0) (3n,); default [y0, 0, 0]."""
 
     def __post_init__(self) -> None:
-        if not hasattr(self.rhs, "py_func"):
-            raise ValueError("Observer.rhs must be a numba @njit function with the observer signature")
-        g = np.ascontiguousarray(np.asarray(self.gains, dtype=np.float64)).ravel()
-        if not np.all(np.isfinite(g)):
-            raise ValueError(f"Observer.gains must be finite, got {g}")
-        object.__setattr__(self, "gains", g)
+        object.__setattr__(self, "gains", _checked_plugin("Observer.rhs", self.rhs,
+                                                          "Observer.gains", self.gains))
 
     def initial(self, y0: np.ndarray) -> np.ndarray:
         if self.initial_state is not None:

@@ -74,9 +74,6 @@ SQUASH_REF_ACCELERATION = 1000.0
 """c for the reference acceleration qdd_d, rad/s^2."""
 SQUASH_DISTURBANCE = 1.0e4
 """c for lumped disturbances (x3_hat, privileged x3), rad/s^2."""
-_SQ_VEL = SQUASH_VELOCITY
-_SQ_ACC_REF = SQUASH_REF_ACCELERATION
-_SQ_DIST = SQUASH_DISTURBANCE
 _ANGLE_CLIP = 4.0 * math.pi
 _ERR_CLIP = 10.0
 
@@ -100,19 +97,19 @@ def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, 
     rows: list[tuple[str, str, float, float]] = []
     rows += [(f"y_{j+1} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP) for j in range(n)]
     rows += [(f"q_d_{j+1}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP) for j in range(n)]
-    rows += [(f"qd_d_{j+1} (squashed {_SQ_VEL:g})", "rad/s", -_SQ_VEL, _SQ_VEL) for j in range(n)]
-    rows += [(f"qdd_d_{j+1} (squashed {_SQ_ACC_REF:g})", "rad/s^2", -_SQ_ACC_REF, _SQ_ACC_REF) for j in range(n)]
+    rows += [(f"qd_d_{j+1} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
+    rows += [(f"qdd_d_{j+1} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION, SQUASH_REF_ACCELERATION) for j in range(n)]
     rows += [(f"e1_{j+1} / bound (clipped)", "-", -_ERR_CLIP, _ERR_CLIP) for j in range(n)]
     rows += [("k_a", "rad", 0.0, 10.0), ("k_b", "rad", 0.0, 10.0),
              ("k_a'", "rad/s", -10.0, 10.0), ("k_b'", "rad/s", -10.0, 10.0),
              ("sin(2 pi f t)", "-", -1.0, 1.0), ("cos(2 pi f t)", "-", -1.0, 1.0),
              ("t / duration", "-", 0.0, 1.0)]
     rows += [(f"u_{j+1} / max_torque (last applied)", "-", -1.0, 1.0) for j in range(n)]
-    rows += [(f"x2_hat_{j+1} (squashed {_SQ_VEL:g})", "rad/s", -_SQ_VEL, _SQ_VEL) for j in range(n)]
-    rows += [(f"x3_hat_{j+1} (squashed {_SQ_DIST:g})", "rad/s^2", -_SQ_DIST, _SQ_DIST) for j in range(n)]
+    rows += [(f"x2_hat_{j+1} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
+    rows += [(f"x3_hat_{j+1} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE, SQUASH_DISTURBANCE) for j in range(n)]
     if privileged:
-        rows += [(f"qd_{j+1} true (squashed {_SQ_VEL:g})", "rad/s", -_SQ_VEL, _SQ_VEL) for j in range(n)]
-        rows += [(f"x3_{j+1} true (squashed {_SQ_DIST:g})", "rad/s^2", -_SQ_DIST, _SQ_DIST) for j in range(n)]
+        rows += [(f"qd_{j+1} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
+        rows += [(f"x3_{j+1} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE, SQUASH_DISTURBANCE) for j in range(n)]
     return rows
 
 
@@ -138,8 +135,8 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
             e = q - ref[b, j]
             o[j] = min(max(q + noise[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
             o[n + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
-            o[2 * n + j] = _sq(ref[b, n + j], _SQ_VEL)
-            o[3 * n + j] = _sq(ref[b, 2 * n + j], _SQ_ACC_REF)
+            o[2 * n + j] = _sq(ref[b, n + j], SQUASH_VELOCITY)
+            o[3 * n + j] = _sq(ref[b, 2 * n + j], SQUASH_REF_ACCELERATION)
             en = e / ka if e >= 0.0 else e / kb
             o[4 * n + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
         k = 5 * n
@@ -154,13 +151,13 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
         k += 7
         for j in range(n):
             o[k + j] = min(max(last[b, j] / umax[b], -1.0), 1.0)
-            o[k + n + j] = _sq(X[b, 3 * n + j], _SQ_VEL)
-            o[k + 2 * n + j] = _sq(X[b, 4 * n + j], _SQ_DIST)
+            o[k + n + j] = _sq(X[b, 3 * n + j], SQUASH_VELOCITY)
+            o[k + 2 * n + j] = _sq(X[b, 4 * n + j], SQUASH_DISTURBANCE)
         if privileged:
             k += 3 * n
             for j in range(n):
-                o[k + j] = _sq(X[b, n + j], _SQ_VEL)
-                o[k + n + j] = _sq(last_x3[b, j], _SQ_DIST)
+                o[k + j] = _sq(X[b, n + j], SQUASH_VELOCITY)
+                o[k + n + j] = _sq(last_x3[b, j], SQUASH_DISTURBANCE)
 
 
 def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:

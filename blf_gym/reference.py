@@ -21,11 +21,7 @@ from numba import njit
 
 from .params import Scenario
 
-__all__ = ["reference_into", "joint_reference", "REF_LEN_PER_LINK"]
-
-REF_LEN_PER_LINK = 3
-"""``reference_into`` writes [q_d (n), qd_d (n), qdd_d (n)]."""
-
+__all__ = ["reference_into", "joint_reference"]
 
 @njit(cache=True, error_model="numpy")
 def reference_into(t, rp, arm, out):

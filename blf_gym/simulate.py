@@ -566,7 +566,6 @@ class Trajectory:
 
 @dataclass
 class _Batch:
-    scenarios: list[Scenario]
     plant: np.ndarray
     nominal: np.ndarray
     ref: np.ndarray
@@ -628,7 +627,6 @@ class ClosedLoop:
         if not hasattr(self, "_batch"):
             n = self.n
             self._batch = _Batch(
-                scenarios=list(scenarios),
                 plant=np.zeros((self.N, 2 * n + 17)),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
                 ref=np.zeros((self.N, 12)),
@@ -644,7 +642,6 @@ class ClosedLoop:
         for i, sc in zip(idx, scenarios):
             if sc.arm.n_links != self.n or sc.sim.dt != self.dt or sc.sim.steps_per_sample != self.steps_per_sample:
                 raise ValueError("a replacement scenario must keep n links, dt and sample_period")
-            b.scenarios[i] = sc
             b.plant[i] = sc.pack_plant()
             b.ref[i] = sc.pack_reference()
             b.bnd[i] = sc.bounds.pack()

@@ -1,8 +1,7 @@
 """The plant's uncertainties: joint friction, the input dead-zone and the external-force schedule.
 
-Compiled scalar/vector functions used inside the closed-loop kernel; parameters are read from the
-packed plant vector (:meth:`blf_gym.params.Scenario.pack_plant`), whose offsets are computed by
-:func:`plant_offsets`.
+Compiled scalar functions used inside the closed-loop kernel; their parameters come from the
+packed plant vector (:meth:`blf_gym.params.Scenario.pack_plant`).
 """
 
 from __future__ import annotations
@@ -10,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["friction", "dead_zone", "force_active", "plant_offsets"]
+__all__ = ["friction", "dead_zone", "force_active", "dead_zone_array"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -42,12 +41,6 @@ def dead_zone(tau, slope_right, slope_left, break_right, break_left):
 def force_active(t, onset):
     """1.0 once the external force is on (step at ``onset``), else 0.0."""
     return 1.0 if t >= onset else 0.0
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def plant_offsets(n):
-    """Index of the first entry after the arm block in the packed plant vector (2n + 1)."""
-    return 2 * n + 1
 
 
 def dead_zone_array(tau: np.ndarray, slope_right: float = 1.0, slope_left: float = 1.2,
