@@ -27,6 +27,11 @@ from typing import Sequence
 
 import numpy as np
 from numba import njit
+from numba import types as nbtypes
+from numba.core import cgutils
+from numba.core.imputils import impl_ret_borrowed
+from numba.extending import intrinsic
+from numba.np.arrayobj import populate_array
 
 from .bounds import bounds_into
 from .controller import (
@@ -102,10 +107,38 @@ def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
     cholesky_solve_into(M, r, out, L)
 
 
+@intrinsic
+def _window(typingctx, arr, start, length):
+    """The view arr[start:start+length] of a 1-D contiguous array, built without a bounds clamp
+    or a runtime reshape, so that a compile-time ``length`` stays a constant LLVM can see.
+
+    The kernel carves all its scratch views with this: with constant shapes (n = _N is bound at
+    specialisation) LLVM unrolls every per-joint loop of the plant, law and observer, and with
+    constant offsets from one base pointer it can tell the views apart (no aliasing reloads).
+    Callers guarantee ``start + length <= len(arr)`` (scratch_length checks the layout).
+    """
+    if not (isinstance(arr, nbtypes.Array) and arr.ndim == 1 and arr.layout == "C"):
+        return None
+    sig = arr(arr, nbtypes.intp, nbtypes.intp)
+
+    def codegen(context, builder, signature, args):
+        aryty = signature.args[0]
+        src = context.make_array(aryty)(context, builder, args[0])
+        out = context.make_array(aryty)(context, builder)
+        itemsize = context.get_constant(nbtypes.intp, context.get_abi_sizeof(context.get_data_type(aryty.dtype)))
+        populate_array(out, data=builder.gep(src.data, [args[1]]),
+                       shape=cgutils.pack_array(builder, [args[2]]),
+                       strides=cgutils.pack_array(builder, [itemsize]),
+                       itemsize=src.itemsize, meminfo=src.meminfo, parent=src.parent)
+        return impl_ret_borrowed(context, builder, aryty, out._getvalue())
+
+    return sig, codegen
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def _fixed(w, start, length):
-    """The view w[start:start+length] with a shape LLVM sees as a constant when length is one."""
-    return w[start : start + length].reshape((length,))
+    """w[start:start+length] with a shape LLVM sees as a constant when ``length`` is one."""
+    return _window(w, start, length)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
