@@ -10,7 +10,9 @@ Hyperparameters come from a YAML file per algorithm and env id (``agents/configs
 style; ``--config`` picks another). A run folder holds ``model.zip``, ``vecnormalize.pkl`` (when
 observations are normalized), ``metadata.json`` (config, package versions, seed, wall time, git
 commit), ``checkpoints/`` (model, replay buffer and normalization statistics, for ``--resume``),
-``eval/`` (periodic evaluations on the paper preset) and ``tb/`` (TensorBoard logs).
+``eval/curve.json`` (learning curves: every ``eval_freq`` steps, the deterministic policy's RMSE
+and violations with blf-eval's metrics on both paper presets and ``curve_suite_seeds`` held-out
+randomized-suite episodes) and ``tb/`` (TensorBoard logs). ``blf-curves`` plots them.
 
 Residual exploration stays near the law: the residual is bounded by ``residual_scale``, the
 configs start PPO and SAC with a negative log-std and SAC/TD3 with no uniform warm-up
@@ -43,7 +45,7 @@ ENV_IDS = {"plain": "PlanarBLF-v0", "residual": "PlanarBLFResidual-v0"}
 ENV_KEYS = ("control_period", "residual_scale", "privileged", "reward_weights", "angle_noise_std",
             "variations", "duration", "max_torque")
 CONFIG_KEYS = ("policy", "n_envs", "normalize", "env", "hyperparams", "policy_kwargs", "action_noise_std",
-               "eval_freq", "checkpoint_freq", "note")
+               "normalize_reward", "eval_freq", "curve_suite_seeds", "checkpoint_freq", "note")
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
@@ -131,6 +133,58 @@ def _make_progress_callback(total: int, start: int, enabled: bool):
     return _Progress()
 
 
+def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta: dict[str, Any],
+                         suite_seeds: int, start_wall: float):
+    """Learning curves: at the start, every ``every`` agent steps and at the end, score the
+    deterministic policy with blf-eval's metrics on both paper presets and ``suite_seeds`` held-out
+    randomized-suite episodes, and append the records to ``out/eval/curve.json`` (atomic; kept
+    across ``--resume``)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from blf_gym.metrics import summarize
+
+    from .evaluate import build_scenarios, evaluate_agent
+
+    path = out / "eval" / "curve.json"
+    groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], suite_seeds, {}, env_kwargs.get("duration"))
+
+    class _Curve(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.points = json.loads(path.read_text())["points"] if path.is_file() else []
+            self.next_at = (self.num_timesteps // every + 1) * every
+            if not self.points:
+                self._evaluate()  # the untrained policy (for a residual agent, about the law alone)
+
+        def _evaluate(self) -> None:
+            env = self.model.get_env()
+            norm = env if isinstance(env, VecNormalize) else None
+            point: dict[str, Any] = {"timesteps": int(self.num_timesteps),
+                                     "wall_s": round(start_wall + time.time() - self._t0, 1)}
+            for label, scs in groups:
+                trajs = evaluate_agent(self.model, meta, norm, scs, threads=1)
+                rec = summarize(trajs, meta["name"], meta["mode"], label, scs[0].sim.dt)
+                point[label] = {k: rec[k] for k in ("rmse_deg", "violations", "failure_rate", "diverged")}
+            self.points.append(point)
+            atomic_write_json(path, {"env_kwargs": env_kwargs, "suite_seeds": suite_seeds,
+                                     "points": self.points})
+
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= self.next_at:
+                self._evaluate()
+                self.next_at = (self.num_timesteps // every + 1) * every
+            return True
+
+        def _on_training_end(self) -> None:
+            # the curve ends at the model that is saved
+            if self.points and self.points[-1]["timesteps"] != self.num_timesteps:
+                self._evaluate()
+
+    cb = _Curve()
+    cb._t0 = time.time()
+    return cb
+
+
 def train(
     algo: str = "sac",
     mode: str = "residual",
@@ -170,7 +224,7 @@ def train(
         env_kwargs["controller"] = controller
 
     import torch
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback, EvalCallback
+    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
@@ -180,8 +234,6 @@ def train(
     cls = _algo_class(algo)
     n_envs = int(cfg.get("n_envs", 1))
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **env_kwargs))
-    eval_kwargs = {k: v for k, v in env_kwargs.items() if k != "scenario"}
-    eval_env = VecMonitor(BLFVecEnv(1, seed=seed + 1, scenario="paper-0.1hz", threads=1, **eval_kwargs))
     ckpt_dir = out / "checkpoints"
     start_steps = 0
     t_start = time.time()
@@ -194,8 +246,6 @@ def train(
         if cfg.get("normalize"):
             stats = ckpt_dir / f"model_vecnormalize_{start_steps}_steps.pkl"
             venv = VecNormalize.load(str(stats), venv)
-            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
-            eval_env.obs_rms = venv.obs_rms
         model = cls.load(ckpt, env=venv, device="cpu")
         buf = ckpt_dir / f"model_replay_buffer_{start_steps}_steps.pkl"
         if hasattr(model, "replay_buffer") and buf.is_file():
@@ -205,9 +255,8 @@ def train(
             prior_wall = float(json.loads(meta_old.read_text()).get("wall_s_at_checkpoint", 0.0))
     else:
         if cfg.get("normalize"):
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=False)
-            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
-            eval_env.obs_rms = venv.obs_rms
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(cfg.get("normalize_reward", False)),
+                                gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
         kwargs = dict(cfg.get("hyperparams") or {})
         if cfg.get("policy_kwargs"):
             kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
@@ -230,9 +279,9 @@ def train(
     callbacks = [
         CheckpointCallback(freq, str(ckpt_dir), name_prefix="model", save_replay_buffer=True,
                            save_vecnormalize=bool(cfg.get("normalize"))),
-        EvalCallback(eval_env, eval_freq=max(1, int(cfg.get("eval_freq", 20_000)) // n_envs),
-                     n_eval_episodes=1, log_path=str(out / "eval"), best_model_save_path=str(out / "eval"),
-                     deterministic=True, verbose=0),
+        _make_curve_callback(int(cfg.get("eval_freq", 20_000)), out, env_kwargs,
+                             {"name": name or out.name, "mode": mode, "env_kwargs": env_kwargs},
+                             int(cfg.get("curve_suite_seeds", 4)), prior_wall),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
     remaining = max(0, timesteps - start_steps)
@@ -269,7 +318,6 @@ def train(
     }
     atomic_write_json(out / "metadata.json", meta)
     venv.close()
-    eval_env.close()
     return out
 
 

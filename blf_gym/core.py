@@ -41,8 +41,16 @@ class RewardWeights:
 
     E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
     normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
-    (u / max_torque)^2 (<= 1). With ``alive >= tracking + torque`` (checked), every step inside
-    the bounds earns r >= 0, so ending an episode early by a violation never pays.
+    (u / max_torque)^2 (<= 1). Every step inside the bounds therefore loses at most
+    ``tracking + torque - alive`` against the alive term. Ending an episode early by a violation
+    never pays when either
+
+    * ``alive >= tracking + torque`` (the default: every step inside the bounds earns r >= 0), or
+    * ``violation >= (tracking + torque - alive) * max_episode_steps``: the terminal penalty
+      outweighs anything the rest of the episode could have cost (any discount factor).
+
+    The env checks this at construction. The second form keeps rewards near zero, which suits
+    critics when the tracking weight is large (the residual configs use it).
     """
 
     tracking: float = 1.0
@@ -50,21 +58,27 @@ class RewardWeights:
     torque: float = 0.01
     """Weight of the normalized squared torque (>= 0)."""
     alive: float | None = None
-    """Reward per step for staying inside the bounds; default tracking + torque."""
+    """Reward per step for staying inside the bounds (>= 0); default tracking + torque."""
     violation: float = 100.0
     """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
 
     def __post_init__(self) -> None:
-        for name in ("tracking", "torque", "violation"):
+        if self.alive is None:
+            object.__setattr__(self, "alive", self.tracking + self.torque)
+        for name in ("tracking", "torque", "alive", "violation"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RewardWeights.{name} must be finite and >= 0, got {v!r}")
-        if self.alive is None:
-            object.__setattr__(self, "alive", self.tracking + self.torque)
-        if not (math.isfinite(self.alive) and self.alive >= self.tracking + self.torque):
+
+    def check_episode(self, max_episode_steps: int) -> None:
+        """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
+        deficit = self.tracking + self.torque - self.alive
+        if deficit > 0 and self.violation < deficit * max_episode_steps:
             raise ValueError(
-                f"RewardWeights.alive must be >= tracking + torque = {self.tracking + self.torque} "
-                f"so that a violation never pays; got {self.alive!r}")
+                f"RewardWeights: with alive = {self.alive!r} < tracking + torque = "
+                f"{self.tracking + self.torque}, violation must be >= (tracking + torque - alive) * "
+                f"max_episode_steps = {deficit * max_episode_steps:g} so that a violation never pays; "
+                f"got violation = {self.violation!r}")
 
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
@@ -249,6 +263,7 @@ class EnvCore:
             reward_weights = RewardWeights()
         elif not isinstance(reward_weights, RewardWeights):
             reward_weights = RewardWeights(**dict(reward_weights))
+        reward_weights.check_episode(self.max_episode_steps)
         self.weights = reward_weights
         self.n = self.base.arm.n_links
         self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, threads=threads)

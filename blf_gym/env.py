@@ -63,7 +63,9 @@ class PlanarBLFEnv(gym.Env):
     Defaults ``tracking = 1``, ``torque = 0.01``, ``alive = tracking + torque``,
     ``violation = 100`` (:class:`blf_gym.core.RewardWeights`). Since ``alive >= tracking +
     torque``, every step inside the bounds earns r >= 0, so ending an episode by a violation never
-    pays better than staying inside. The terms are returned in ``info["reward_info"]``.
+    pays better than staying inside. A smaller ``alive`` (down to 0, rewards near zero) is accepted
+    only with ``violation >= (tracking + torque - alive) * max_episode_steps``, which keeps that
+    guarantee. The terms are returned in ``info["reward_info"]``.
 
     ## Starting State
     q(0) = q_d(0) + initial_error (zero in the paper presets), qd(0) = 0; observer

@@ -210,3 +210,59 @@ def test_cli_guards_against_silent_mistakes(tmp_path, capsys):
     assert "nothing to evaluate" in capsys.readouterr().err
     assert eval_main(["--scenario-kwargs", "{payload: 5}", "--agents", "--no-progress"]) == 2
     assert "--scenario-kwargs" in capsys.readouterr().err
+
+
+def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
+    """eval/curve.json scores the live policy with its live normalization; its last point must equal
+    blf-eval's metrics of the saved model.zip + vecnormalize.pkl on the same scenarios."""
+    from agents.evaluate import build_scenarios, evaluate_agent
+    from blf_gym.metrics import summarize
+
+    out = tmp_path / "run"
+    cfg = tmp_path / "ppo.yaml"
+    cfg.write_text(TINY.format(normalize="true", hyper=HYPER["ppo"]) + "curve_suite_seeds: 2\n")
+    assert train_main(["--algo", "ppo", "--timesteps", "256", "--config", str(cfg), "--out", str(out),
+                       "--scenario", "randomized", "--no-progress"]) == 0
+    curve = json.loads((out / "eval" / "curve.json").read_text())
+    steps = [p["timesteps"] for p in curve["points"]]
+    assert steps[0] == 0 and steps == sorted(steps) and steps[-1] == 256  # eval_freq 100 on 64-step rollouts
+    model, meta, norm = load_agent(out / "model.zip")
+    for label, scs in build_scenarios(["paper-0.1hz", "paper-0.5hz"], 2, {}, 0.2):
+        rec = summarize(evaluate_agent(model, meta, norm, scs), "x", "residual", label, scs[0].sim.dt)
+        np.testing.assert_allclose(curve["points"][-1][label]["rmse_deg"], rec["rmse_deg"], rtol=1e-12)
+        assert curve["points"][-1][label]["violations"] == rec["violations"]
+    # the plot is written and is a PNG
+    from agents.curves import main as curves_main
+
+    assert curves_main([str(out), "--out", str(tmp_path / "c.png")]) == 0
+    assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert curves_main([str(tmp_path / "nothing"), "--out", str(tmp_path / "d.png")]) == 2
+
+
+def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
+    from agents.tune import law_levels, main as tune_main
+
+    cands = []
+    for name, scale in (("small", 0.5), ("large", 4.0)):
+        p = tmp_path / f"{name}.yaml"
+        p.write_text(TINY.format(normalize="true", hyper=HYPER["ppo"]).replace("residual_scale: 2.0",
+                                                                               f"residual_scale: {scale}")
+                     + "curve_suite_seeds: 1\n")
+        cands.append(str(p))
+    out = tmp_path / "tune"
+    assert tune_main([*cands, "--timesteps", "128", "--out", str(out), "--jobs", "2"]) == 0
+    res = json.loads((out / "tune.json").read_text())
+    assert {r["run"] for r in res["rows"]} == {"small", "large"}
+    law = law_levels(1, 0.2)
+    for r in res["rows"]:
+        curve = json.loads((out / r["run"] / "eval" / "curve.json").read_text())
+        for g in ("paper-0.1hz", "paper-0.5hz", "randomized"):
+            want = np.asarray(curve["points"][-1][g]["rmse_deg"]) / np.asarray(law[g])
+            np.testing.assert_allclose(r[g]["ratio"], want, rtol=1e-12)
+        assert r["worst_ratio"] == pytest.approx(max(max(r[g]["ratio"]) for g in res["law"]))
+    assert "| small |" in (out / "tune.md").read_text()
+    capsys.readouterr()
+    # a second call trains nothing and rebuilds the same table
+    assert tune_main([*cands, "--timesteps", "128", "--out", str(out)]) == 0
+    assert "2 run(s) done, 0 to train" in capsys.readouterr().err
+    assert tune_main([str(tmp_path / "missing.yaml"), "--out", str(out)]) == 2

@@ -301,8 +301,11 @@ def test_vector_env_equals_single_envs_across_autoresets(env_id, scales):
 def test_reward_contract_under_random_policies():
     rng = np.random.default_rng(11)
     seen = {"inside": 0, "violation": 0}
+    # the last config has no alive term: its terminal penalty is sized instead (100 agent steps)
+    zero_alive = {"tracking": 2.0, "torque": 0.5, "alive": 0.0, "violation": 250.0}
     configs = [("PlanarBLF-v0", {}, (0.01, 0.03, 0.1, 1.0)),
-               ("PlanarBLFResidual-v0", {"residual_scale": 60.0}, (0.1, 1.0))]
+               ("PlanarBLFResidual-v0", {"residual_scale": 60.0}, (0.1, 1.0)),
+               ("PlanarBLF-v0", {"reward_weights": zero_alive}, (0.1, 1.0))]
     for env_id, extra, scales in configs:
         for scenario in ("paper-0.1hz", "paper-0.5hz", "randomized"):
             env = gym.make(env_id, scenario=scenario, duration=1.0, **extra)
@@ -320,14 +323,17 @@ def test_reward_contract_under_random_policies():
                     # r = alive - tracking * E - torque * U - violation * [ended by it]
                     assert r == pytest.approx(ri["alive"] + ri["tracking"] + ri["torque"] + ri["violation"],
                                               rel=1e-12, abs=1e-12)
-                    assert ri["alive"] == w.alive == w.tracking + w.torque
+                    assert ri["alive"] == w.alive
+                    # ending now forfeits at most max_episode_steps steps of the worst inside reward
+                    worst_inside = w.alive - w.tracking - w.torque
+                    assert -w.violation <= env.unwrapped.core.max_episode_steps * min(worst_inside, 0.0)
                     assert -w.torque <= ri["torque"] <= 0.0
                     assert ri["tracking"] <= 0.0
                     if info["termination_reason"] is None:
                         assert not term
                         assert ri["violation"] == 0.0
                         assert ri["tracking"] >= -w.tracking  # every sample inside: |e1 / bound| < 1
-                        assert r >= 0.0
+                        assert r >= worst_inside
                         seen["inside"] += 1
                     else:
                         assert term and info["termination_reason"] in ("violation", "diverged")
@@ -340,14 +346,20 @@ def test_reward_contract_under_random_policies():
 
 
 def test_reward_weights_validation_and_custom_weights():
-    with pytest.raises(ValueError, match="alive"):
-        RewardWeights(alive=0.5, tracking=1.0)
-    for bad in ({"tracking": -1.0}, {"torque": float("nan")}, {"violation": float("inf")}):
+    for bad in ({"tracking": -1.0}, {"torque": float("nan")}, {"violation": float("inf")}, {"alive": -1.0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             RewardWeights(**bad)
     assert RewardWeights(tracking=2.0, torque=0.5).alive == 2.5
     with pytest.raises(ValueError, match="alive"):
         gym.make("PlanarBLF-v0", reward_weights={"alive": 0.1})
+    # a small alive term needs a terminal penalty that outweighs the rest of the episode:
+    # 3000 agent steps of 30 s at 10 ms, each losing at most tracking + torque - alive = 1
+    with pytest.raises(ValueError, match="violation must be >= "):
+        gym.make("PlanarBLF-v0", reward_weights={"alive": 0.01, "violation": 2999.0})
+    gym.make("PlanarBLF-v0", reward_weights={"alive": 0.01, "violation": 3000.0})
+    with pytest.raises(ValueError, match="violation must be >= "):  # shorter episodes need less
+        gym.make("PlanarBLF-v0", duration=1.0, reward_weights={"alive": 0.01, "violation": 99.0})
+    gym.make("PlanarBLF-v0", duration=1.0, reward_weights={"alive": 0.01, "violation": 100.0})
     # custom weights given as a mapping reach the reward
     env = gym.make("PlanarBLF-v0", reward_weights={"tracking": 2.0, "torque": 0.0, "violation": 5.0})
     env.reset(seed=0)

@@ -1,0 +1,101 @@
+"""``blf-curves`` (also ``python -m agents.curves``): plot learning curves of ``blf-train`` runs.
+
+Reads each run's ``eval/curve.json`` (RMSE and violations of the deterministic policy, every
+``eval_freq`` steps, on both paper presets and held-out randomized-suite episodes) and draws one
+panel per scenario group and joint: RMSE against training steps, one line per run (seed), with the
+proposed law's level on the same scenarios as a dashed line. A last row counts violating samples.
+
+Example::
+
+    blf-curves runs/final/sac_s0 runs/final/sac_s1 runs/final/sac_s2 --out docs/learning_curves.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Sequence
+
+__all__ = ["main", "plot_curves"]
+
+GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
+
+
+def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | None = None,
+                title: str | None = None) -> Path:
+    """Draw the curves of ``runs`` into the PNG ``out`` (written atomically) and return its path."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from blf_gym.io import atomic_path
+
+    curves = []
+    for run in runs:
+        path = Path(run) / "eval" / "curve.json"
+        if not path.is_file():
+            raise ValueError(f"{run}: no eval/curve.json (was it trained by blf-train?)")
+        curves.append((Path(run).name, json.loads(path.read_text())))
+    if law is None:
+        from .tune import law_levels
+
+        first = curves[0][1]
+        law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))
+    fig, axes = plt.subplots(len(GROUPS) + 1, 3, figsize=(13, 11), sharex=True)
+    for name, c in curves:
+        pts = c["points"]
+        steps = np.array([p["timesteps"] for p in pts]) / 1e3
+        for gi, g in enumerate(GROUPS):
+            rmse = np.array([p[g]["rmse_deg"] for p in pts])
+            for j in range(3):
+                axes[gi, j].plot(steps, rmse[:, j], marker=".", label=name)
+        viol = np.array([sum(sum(p[g]["violations"]) for g in GROUPS) for p in pts])
+        axes[-1, 0].plot(steps, viol, marker=".", label=name)
+    for gi, g in enumerate(GROUPS):
+        for j in range(3):
+            ax = axes[gi, j]
+            ax.axhline(law[g][j], color="k", ls="--", lw=1.2, label="proposed law")
+            ax.set_title(f"{g}, joint {j + 1}", fontsize=9)
+            ax.set_ylabel("RMSE (deg)")
+            ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+            ax.grid(alpha=0.3)
+    axes[-1, 0].axhline(0, color="k", ls="--", lw=1.2, label="proposed law")
+    axes[-1, 0].set_ylabel("violating samples\n(all scenarios)")
+    axes[-1, 0].grid(alpha=0.3)
+    for j in (1, 2):
+        axes[-1, j].axis("off")
+    for j in range(3):
+        axes[-1, j].set_xlabel("training steps (thousands)")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    axes[-1, 1].legend(handles, labels, loc="center", fontsize=9)
+    fig.suptitle(title or "Learning curves: deterministic policy, blf-eval metrics", fontsize=11)
+    fig.tight_layout()
+    out = Path(out)
+    with atomic_path(out) as tmp:
+        fig.savefig(tmp, format="png", dpi=90)
+    plt.close(fig)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="blf-curves", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("runs", nargs="+", type=Path, help="run folders written by blf-train")
+    p.add_argument("--out", type=Path, default=Path("learning_curves.png"), help="PNG to write")
+    p.add_argument("--title", default=None)
+    args = p.parse_args(argv)
+    try:
+        path = plot_curves(args.runs, args.out, title=args.title)
+    except ValueError as exc:
+        print(f"blf-curves: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
