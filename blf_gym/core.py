@@ -23,6 +23,7 @@ from .simulate import (
     ST_VIOL_SAMPLES,
     ST_VIOL_STEPS,
     SUM_EN2,
+    SUM_EN2_JOINT,
     SUM_SAMPLES,
     SUM_UN2,
     ClosedLoop,
@@ -45,8 +46,9 @@ class RewardWeights:
     ``tracking + torque - alive`` against the alive term. Ending an episode early by a violation
     never pays when either
 
-    * ``alive >= tracking + torque`` (the default: every step inside the bounds earns r >= 0), or
-    * ``violation >= (tracking + torque - alive) * max_episode_steps``: the terminal penalty
+    * ``alive >= tracking * max E + torque`` (the default: every step inside the bounds earns
+      r >= 0), or
+    * ``violation >= (tracking * max E + torque - alive) * max_episode_steps``: the terminal penalty
       outweighs anything the rest of the episode could have cost (any discount factor).
 
     The env checks this at construction. The second form keeps rewards near zero, which suits
@@ -58,27 +60,43 @@ class RewardWeights:
     torque: float = 0.01
     """Weight of the normalized squared torque (>= 0)."""
     alive: float | None = None
-    """Reward per step for staying inside the bounds (>= 0); default tracking + torque."""
+    """Reward per step for staying inside the bounds (>= 0); default tracking * max E + torque."""
     violation: float = 100.0
     """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
+    relative: bool = False
+    """Measure tracking against the law: E becomes the mean over joints of E_j / E_law_j, with
+    E_j the step's mean of (e1 / bound)^2 for joint j and E_law_j the same quantity averaged over
+    a whole episode of the reference law alone on the episode's scenario (the inner controller in
+    residual mode, the proposed law in plain mode; no measurement noise). A policy at the law's
+    level then loses about ``tracking`` per step on every scenario and joint, whatever their error
+    scale. Each ratio is capped at ``relative_cap``."""
+    relative_cap: float = 100.0
+    """Cap of each joint's ratio when ``relative`` (> 0); E <= relative_cap inside the bounds."""
 
     def __post_init__(self) -> None:
         if self.alive is None:
-            object.__setattr__(self, "alive", self.tracking + self.torque)
+            object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
         for name in ("tracking", "torque", "alive", "violation"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RewardWeights.{name} must be finite and >= 0, got {v!r}")
+        if not (math.isfinite(self.relative_cap) and self.relative_cap > 0):
+            raise ValueError(f"RewardWeights.relative_cap must be finite and > 0, got {self.relative_cap!r}")
+
+    @property
+    def max_error(self) -> float:
+        """The largest E inside the bounds: 1, or ``relative_cap`` when ``relative``."""
+        return float(self.relative_cap) if self.relative else 1.0
 
     def check_episode(self, max_episode_steps: int) -> None:
         """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
-        deficit = self.tracking + self.torque - self.alive
+        deficit = self.tracking * self.max_error + self.torque - self.alive
         if deficit > 0 and self.violation < deficit * max_episode_steps:
             raise ValueError(
-                f"RewardWeights: with alive = {self.alive!r} < tracking + torque = "
-                f"{self.tracking + self.torque}, violation must be >= (tracking + torque - alive) * "
-                f"max_episode_steps = {deficit * max_episode_steps:g} so that a violation never pays; "
-                f"got violation = {self.violation!r}")
+                f"RewardWeights: with alive = {self.alive!r} < tracking * max E + torque = "
+                f"{self.tracking * self.max_error + self.torque}, violation must be >= (tracking * max E "
+                f"+ torque - alive) * max_episode_steps = {deficit * max_episode_steps:g} so that a "
+                f"violation never pays; got violation = {self.violation!r}")
 
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
@@ -283,6 +301,9 @@ class EnvCore:
         self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
+        self._law_en2 = np.ones((N, n))
+        self._law_cache: dict[Scenario, np.ndarray] = {}
+        self._threads = threads
 
     # ------------------------------------------------------------------ reset
     def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
@@ -312,11 +333,38 @@ class EnvCore:
             self._durations[i] = sc.sim.duration
             self._umax[i] = sc.sim.max_torque
         self.loop.set_scenarios(scs, which=list(idx))
+        if self.weights.relative:
+            self._law_en2[list(idx)] = self.law_level(scs)
         for i in idx:
             self.steps[i] = 0
             self.last_x3[i] = 0.0
             self.done[i] = False
             self._chunks[i] = []
+
+    def law_level(self, scenarios: Sequence[Scenario]) -> np.ndarray:
+        """(len(scenarios), n): each joint's mean of (e1 / bound)^2 over a whole episode of the
+        reference law alone on each scenario (see ``RewardWeights.relative``), without noise."""
+        out = np.empty((len(scenarios), self.n))
+        todo = []
+        for k, sc in enumerate(scenarios):
+            sc = replace(sc, angle_noise_std=0.0)
+            if sc in self._law_cache:
+                out[k] = self._law_cache[sc]
+            else:
+                todo.append((k, sc))
+        if todo:
+            ref = self.controller if self.residual else make_controller("proposed")
+            loop = ClosedLoop([sc for _, sc in todo], ref, threads=self._threads)
+            loop.advance(todo[0][1].sim.n_steps, record_samples=0)
+            level = loop.sums[:, SUM_EN2_JOINT : SUM_EN2_JOINT + self.n] / np.maximum(
+                loop.sums[:, SUM_SAMPLES:SUM_SAMPLES + 1], 1.0)
+            # a floor keeps the ratio finite for a law that tracks perfectly
+            level = np.maximum(level, 1e-12)
+            for (k, sc), lv in zip(todo, level):
+                out[k] = lv
+                if len(self._law_cache) < 64:
+                    self._law_cache[sc] = lv
+        return out
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
@@ -359,7 +407,11 @@ class EnvCore:
         self.steps += 1
         w = self.weights
         samples = np.maximum(sums[:, SUM_SAMPLES], 1.0)
-        tracking = sums[:, SUM_EN2] / (samples * n)
+        if w.relative:
+            ratio = sums[:, SUM_EN2_JOINT : SUM_EN2_JOINT + n] / (samples[:, None] * self._law_en2)
+            tracking = np.minimum(ratio, w.relative_cap).mean(axis=1)
+        else:
+            tracking = sums[:, SUM_EN2] / (samples * n)
         torque = sums[:, SUM_UN2] / (samples * n)
         diverged = status[:, ST_DIVERGED]
         violated = status[:, ST_VIOL_STEPS] > 0

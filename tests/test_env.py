@@ -700,3 +700,39 @@ def test_observation_index_matches_the_layout_table():
     assert rows[idx["time"].start][0] == "t / duration"
     assert rows[idx["x3_hat"].start][0].startswith("x3_hat_1")
     assert rows[idx["qd"].start][0].startswith("qd_1 true") and idx["x3"].stop == len(rows)
+
+
+def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
+    """With relative=True, E = mean_j E_j / E_law_j where E_law_j is the law's episode mean; a zero
+    residual reproduces the law bit for bit, so the episode mean of E must be 1 (up to rounding) on
+    every scenario, however different their error scales are."""
+    w = {"relative": True, "relative_cap": 1e9, "tracking": 1.0, "torque": 0.0, "alive": 0.0,
+         "violation": 1e9 * 200}
+    for scenario in ("paper-0.1hz", "paper-0.5hz", "randomized"):
+        # the law's reference episode has no measurement noise, so the suite's is switched off here
+        env = gym.make("PlanarBLFResidual-v0", scenario=scenario, duration=2.0, reward_weights=w,
+                       angle_noise_std=0.0)
+        env.reset(seed=3)
+        terms = []
+        while True:
+            _, r, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
+            terms.append(-info["reward_info"]["tracking"])
+            if term or trunc:
+                break
+        assert not term
+        assert np.mean(terms) == pytest.approx(1.0, rel=1e-9), scenario
+        assert np.std(terms) > 0.05  # per step it varies: the ratio is not trivially 1
+    # a residual that pushes the arm off the reference costs more than the law
+    env = gym.make("PlanarBLFResidual-v0", duration=2.0, reward_weights=w, residual_scale=5.0)
+    env.reset(seed=3)
+    terms = []
+    while True:
+        _, r, term, trunc, info = env.step(np.array([1.0, -1.0, 1.0], dtype=np.float32))
+        terms.append(-info["reward_info"]["tracking"])
+        if term or trunc:
+            break
+    assert np.mean(terms) > 2.0
+    # the cap bounds each joint's ratio, and the violation check uses it
+    with pytest.raises(ValueError, match="violation must be >= "):
+        gym.make("PlanarBLFResidual-v0", reward_weights={"relative": True, "alive": 0.0, "violation": 1e5})
+    assert RewardWeights(relative=True, relative_cap=10.0).alive == pytest.approx(10.0 + 0.01)
