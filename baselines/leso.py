@@ -17,7 +17,7 @@ import numpy as np
 from numba import njit
 
 from blf_gym.controller import model_length, nominal_model_into
-from blf_gym.dynamics import cholesky_solve_factored, coriolis_times_into
+from blf_gym.dynamics import ldl_solve_factored, coriolis_times_into
 
 __all__ = ["leso_rhs", "LESO"]
 
@@ -40,7 +40,7 @@ def leso_rhs(y, xhat, u, nominal, model, gains, dxhat, work):
     coriolis_times_into(trig, x2, x2, nominal, c, dyn)
     for i in range(n):
         r[i] = u[i] - c[i] - g[i]
-    cholesky_solve_factored(chol, r, acc)
+    ldl_solve_factored(chol, r, acc)
     l1 = 3.0 * k0
     l2 = 3.0 * k0 * k0
     l3 = k0 * k0 * k0

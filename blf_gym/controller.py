@@ -23,10 +23,10 @@ Law signature (all arrays float64, C-contiguous; n joints)::
     model    (2n^2+3n,)  the nominal model at the measured angles y, computed once per stage by
                          the kernel and shared by the law and the observer: [M(y) flat row-major
                          (n^2), G(y) (n), cos of the absolute link angles (n), their sines (n),
-                         the lower Cholesky factor of M(y) flat row-major with reciprocal
-                         diagonal (n^2)]; pass its trig part to
+                         the LDL^T factor of M(y) flat row-major: unit lower factor below the
+                         diagonal, 1/D on it, scratch above (n^2)]; pass its trig part to
                          blf_gym.dynamics.coriolis_times_into for C(y, v) w, and its factor to
-                         blf_gym.dynamics.cholesky_solve_factored for M(y)^-1 b
+                         blf_gym.dynamics.ldl_solve_factored for M(y)^-1 b
     gains    (G,)        the controller's own packed gains
     u_out    (n,)        write the commanded torque here, N m (finite, always)
     work     (WORK,)     scratch of length work_length(n); contents undefined on entry
@@ -52,7 +52,7 @@ from typing import Any, Callable
 import numpy as np
 from numba import njit
 
-from .dynamics import abs_trig_into, cholesky_factor_into, gravity_into, mass_matrix_into
+from .dynamics import abs_trig_into, ldl_factor_into, gravity_into, mass_matrix_into
 from .params import ArmParams
 
 __all__ = [
@@ -83,7 +83,7 @@ def model_length(n):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def nominal_model_into(y, nominal, model, work):
-    """Fill ``model`` = [M(y), G(y), cos theta, sin theta, chol(M(y))] of the nominal arm (see
+    """Fill ``model`` = [M(y), G(y), cos theta, sin theta, LDL^T factor of M(y)] of the nominal arm (see
     above). ``work`` needs ``n`` entries."""
     n = y.shape[0]
     nn = n * n
@@ -91,7 +91,7 @@ def nominal_model_into(y, nominal, model, work):
     abs_trig_into(y, trig)
     mass_matrix_into(trig, nominal, model[:nn], work)
     gravity_into(trig, nominal, model[nn : nn + n], work)
-    cholesky_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])
+    ldl_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])
 
 
 @njit(cache=True, error_model="numpy", inline="always")

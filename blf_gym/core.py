@@ -192,6 +192,82 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
                 o[k + n + j] = _sq(last_x3[b, j], SQUASH_DISTURBANCE)
 
 
+@njit(cache=True, error_model="numpy")
+def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd,
+                 low, high, obs, state):
+    """:func:`_observe_batch`, then the float32 observations clipped to the box (float32 rounding
+    at its edges) into ``obs``, and per joint [e1, g_upper, g_lower] into ``state`` (N, 3n), in
+    the g <= 0 convention (positive means the bound is broken). One compiled call per step."""
+    _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd)
+    N, m = obs64.shape
+    n = last_x3.shape[1]
+    for b in range(N):
+        for k in range(m):
+            v = np.float32(obs64[b, k])
+            obs[b, k] = min(max(v, low[k]), high[k])
+        for j in range(n):
+            ej = X[b, j] - ref[b, j]
+            state[b, j] = ej
+            state[b, n + j] = ej - bnd[b, 0]
+            state[b, 2 * n + j] = -bnd[b, 3] - ej
+
+
+@njit(cache=True, error_model="numpy")
+def _clip_finite(a):
+    """Clip ``a`` (N, n) to [-1, 1] in place; False if any entry is NaN or infinite."""
+    for b in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            v = a[b, j]
+            if not np.isfinite(v):
+                return False
+            a[b, j] = min(max(v, -1.0), 1.0)
+    return True
+
+
+# rows of _step_outputs' result
+_R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_PENALTY, _R_ALIVE = range(8)
+
+
+@njit(cache=True, error_model="numpy")
+def _step_outputs(status, sums, law_en2, wvec, t_end, durations, out):
+    """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
+    the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
+    violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
+    diverged."""
+    N = status.shape[0]
+    n = law_en2.shape[1]
+    relative = wvec[0] > 0.0
+    cap, alive, w_tracking, w_torque, w_violation = wvec[1], wvec[2], wvec[3], wvec[4], wvec[5]
+    terminate_on_violation = wvec[6] > 0.0
+    flags = 0
+    for b in range(N):
+        samples = max(sums[b, SUM_SAMPLES], 1.0)
+        if relative:
+            acc = 0.0
+            for j in range(n):
+                acc += min(sums[b, SUM_EN2_JOINT + j] / (samples * law_en2[b, j]), cap)
+            tr = acc / n
+        else:
+            tr = sums[b, SUM_EN2] / (samples * n)
+        tq = sums[b, SUM_UN2] / (samples * n)
+        v = status[b, ST_VIOL_STEPS] > 0
+        term = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
+        pen = w_violation if term else 0.0
+        out[_R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
+        out[_R_TERMINATED, b] = 1.0 if term else 0.0
+        out[_R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
+        out[_R_VIOLATED, b] = 1.0 if v else 0.0
+        out[_R_TRACKING, b] = -w_tracking * tr
+        out[_R_TORQUE, b] = -w_torque * tq
+        out[_R_PENALTY, b] = -pen
+        out[_R_ALIVE, b] = alive
+        if term or out[_R_TRUNCATED, b] > 0.0:
+            flags |= 1
+        if status[b, ST_DIVERGED] != 0:
+            flags |= 2
+    return flags
+
+
 def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
     """ValueError naming any keyword argument the env does not know, with the accepted ones."""
     import inspect
@@ -283,6 +359,9 @@ class EnvCore:
             reward_weights = RewardWeights(**dict(reward_weights))
         reward_weights.check_episode(self.max_episode_steps)
         self.weights = reward_weights
+        w = reward_weights
+        self._wvec = np.array([float(w.relative), w.relative_cap, w.alive, w.tracking, w.torque, w.violation,
+                               float(self.terminate_on_violation)])
         self.n = self.base.arm.n_links
         self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, threads=threads)
         self.obs_dim = len(observation_layout(self.n, self.privileged))
@@ -302,6 +381,9 @@ class EnvCore:
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
         self._law_en2 = np.ones((N, n))
+        self._stds = np.zeros(N)
+        self._noisy: list[int] = []
+        self._obs64 = np.empty((N, self.obs_dim))
         self._law_cache: dict[Scenario, np.ndarray] = {}
         self._threads = threads
 
@@ -332,6 +414,8 @@ class EnvCore:
             self.scenarios[i] = sc
             self._durations[i] = sc.sim.duration
             self._umax[i] = sc.sim.max_torque
+            self._stds[i] = sc.angle_noise_std
+        self._noisy = [int(i) for i in np.flatnonzero(self._stds > 0)]
         self.loop.set_scenarios(scs, which=list(idx))
         if self.weights.relative:
             self._law_en2[list(idx)] = self.law_level(scs)
@@ -368,16 +452,15 @@ class EnvCore:
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
-        a = np.asarray(actions, dtype=np.float64)
+        """The actions as a new (N, n) float64 array clipped to [-1, 1]; ValueError if the shape
+        is wrong or an entry is NaN or infinite."""
+        a = np.array(actions, dtype=np.float64)  # a copy: the caller's array is never modified
         want = (self.n,) if self.single else (self.num_envs, self.n)
         if a.shape != want:
             raise ValueError(f"action must have shape {want}, got {a.shape}")
         a = a.reshape(self.num_envs, self.n)
-        lo, hi = a.min(), a.max()
-        if not (np.isfinite(lo) and np.isfinite(hi)):
+        if not _clip_finite(a):
             raise ValueError(f"action must be finite, got {np.asarray(actions).tolist()}")
-        if lo < -1.0 or hi > 1.0:
-            a = np.minimum(np.maximum(a, -1.0), 1.0)
         return a
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -388,13 +471,12 @@ class EnvCore:
         scale = self.residual_scale if self.residual else self._umax[:, None]
         residual = a * scale
         noise = None
-        stds = np.array([sc.angle_noise_std for sc in self.scenarios])
-        if np.any(stds > 0):
+        if self._noisy:
             # each arm draws from its own generator, and only if it is noisy, so an arm's stream
             # does not depend on its neighbours (vector env == single envs)
             noise = np.zeros((N, self.steps_per_period, n))
-            for i in np.flatnonzero(stds > 0):
-                noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * stds[i]
+            for i in self._noisy:
+                noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * self._stds[i]
         rec, nrec, status = self.loop.advance(
             self.steps_per_period, residual=residual, noise=noise,
             terminate=self.terminate_on_violation,
@@ -403,49 +485,50 @@ class EnvCore:
             for i in range(N):
                 if nrec[i]:
                     self._chunks[i].append(rec[i, : nrec[i]].copy())
-        sums = self.loop.sums
         self.steps += 1
         w = self.weights
-        samples = np.maximum(sums[:, SUM_SAMPLES], 1.0)
-        if w.relative:
-            ratio = sums[:, SUM_EN2_JOINT : SUM_EN2_JOINT + n] / (samples[:, None] * self._law_en2)
-            tracking = np.minimum(ratio, w.relative_cap).mean(axis=1)
-        else:
-            tracking = sums[:, SUM_EN2] / (samples * n)
-        torque = sums[:, SUM_UN2] / (samples * n)
-        diverged = status[:, ST_DIVERGED]
-        violated = status[:, ST_VIOL_STEPS] > 0
-        terminated = (diverged != 0) | (violated & self.terminate_on_violation)
-        penalty = np.where(terminated, w.violation, 0.0)
-        rewards = w.alive - w.tracking * tracking - w.torque * torque - penalty
+        res = np.empty((8, N))
         t_end = self.loop.time
-        truncated = ~terminated & (t_end >= self._durations - 1e-12)
-        reason = np.full(N, None, dtype=object)
-        reason[violated & self.terminate_on_violation] = "violation"
-        reason[diverged != 0] = "diverged"
-        last = self.loop.last
+        flags = _step_outputs(status, self.loop.sums, self._law_en2, self._wvec, t_end, self._durations, res)
+        rewards = res[_R_REWARD]
+        terminated = res[_R_TERMINATED] > 0.0
+        truncated = res[_R_TRUNCATED] > 0.0
+        reason = np.empty(N, dtype=object)  # filled with None
+        trunc_reason = np.empty(N, dtype=object)
+        if flags:
+            for i in range(N):
+                if status[i, ST_DIVERGED]:
+                    reason[i] = "diverged"
+                elif terminated[i]:
+                    reason[i] = "violation"
+                elif truncated[i]:
+                    trunc_reason[i] = "time_limit"
+        last = self.loop.last.copy()  # the info entries below are views of this fresh copy
         self.last_x3[:] = last[:, 3 * n : 4 * n]
         info: dict[str, Any] = {
-            "cost": violated.astype(np.float64),
-            "violating_samples": status[:, ST_VIOL_SAMPLES].copy(),
-            "u": last[:, :n].copy(),
-            "u_law": last[:, n : 2 * n].copy(),
+            "cost": res[_R_VIOLATED],
+            "violating_samples": status[:, ST_VIOL_SAMPLES],
+            "u": last[:, :n],
+            "u_law": last[:, n : 2 * n],
             "u_residual": residual,
             "saturated": status[:, ST_SAT_STEPS] > 0,
-            "x3": last[:, 3 * n : 4 * n].copy(),
-            "x3_hat": last[:, 4 * n : 5 * n].copy(),
+            "x3": last[:, 3 * n : 4 * n],
+            "x3_hat": last[:, 4 * n : 5 * n],
             "termination_reason": reason,
-            "truncation_reason": np.where(truncated, "time_limit", None).astype(object),
-            "reward_info": {"alive": np.full(N, float(w.alive)), "tracking": -w.tracking * tracking,
-                            "torque": -w.torque * torque, "violation": -penalty},
+            "truncation_reason": trunc_reason,
+            "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
+                            "torque": res[_R_TORQUE], "violation": res[_R_PENALTY]},
         }
-        if np.any(diverged):
+        if flags & 2:
             info["diverged_message"] = np.array(
                 [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps) or None
-                 for d, t in zip(diverged, t_end)],
+                 for d, t in zip(status[:, ST_DIVERGED], t_end)],
                 dtype=object)
-        self.done[:] = terminated | truncated
-        obs = self.observe(info)
+        if flags:
+            self.done[:] = terminated | truncated
+        else:
+            self.done[:] = False
+        obs = self.observe(info, t=t_end)
         return obs, rewards, terminated, truncated, info
 
     def trajectory(self, i: int = 0):
@@ -477,35 +560,36 @@ class EnvCore:
 
     # ------------------------------------------------------------------ observation
     def observe(self, info: dict[str, Any] | None = None,
-                which: Sequence[int] | None = None) -> np.ndarray:
+                which: Sequence[int] | None = None, t: np.ndarray | None = None) -> np.ndarray:
         """Observations (N, obs_dim) float32 at the arms' current time; adds the state part of
         ``info`` (time, error, bounds, margins, as per-arm arrays) when given. Measurement noise is
-        drawn only for the arms in ``which`` (default all); the other rows are for discarding."""
+        drawn only for the arms in ``which`` (default all); the other rows are for discarding. ``t``
+        is the arms' current time when the caller already has it."""
         N, n = self.num_envs, self.n
         X = self.loop.X
-        t = self.loop.time.astype(np.float64)
+        if t is None:
+            t = self.loop.time
         b = self.loop._batch
         noise = self._obs_noise
-        noise[:] = 0.0
-        for i in range(N) if which is None else which:
-            std = self.scenarios[i].angle_noise_std
-            if std > 0:
-                noise[i] = self.rngs[i].standard_normal(n) * std
-        obs64 = np.empty((N, self.obs_dim))
-        _observe_batch(X, t, b.ref, b.bnd, b.plant, self.loop.last, self.last_x3, noise,
-                       self._durations, self._umax, self.privileged, obs64, self._ref, self._bnd)
-        obs = obs64.astype(np.float32)
-        np.clip(obs, self.obs_low, self.obs_high, out=obs)  # float32 rounding at the box edges
-        bnd = self._bnd
-        e = X[:, :n] - self._ref[:, :n]
+        if self._noisy:
+            noise[:] = 0.0
+            for i in self._noisy:
+                if which is None or i in which:
+                    noise[i] = self.rngs[i].standard_normal(n) * self._stds[i]
+        obs = np.empty((N, self.obs_dim), dtype=np.float32)
+        state = np.empty((N, 3 * n))
+        _observe_all(X, t, b.ref, b.bnd, b.plant, self.loop.last, self.last_x3, noise, self._durations,
+                     self._umax, self.privileged, self._obs64, self._ref, self._bnd, self.obs_low,
+                     self.obs_high, obs, state)
         if info is not None:
-            info["time"] = t.copy()
-            info["e1"] = e
-            info["k_a"] = bnd[:, 0].copy()
-            info["k_b"] = bnd[:, 3].copy()
+            bnd = self._bnd.copy()
+            info["time"] = t
+            info["e1"] = state[:, :n]
+            info["k_a"] = bnd[:, 0]
+            info["k_b"] = bnd[:, 3]
             # g(t, q) <= 0 convention: positive means the bound is broken
-            info["g_upper"] = e - bnd[:, 0:1]
-            info["g_lower"] = -bnd[:, 3:4] - e
+            info["g_upper"] = state[:, n : 2 * n]
+            info["g_lower"] = state[:, 2 * n :]
             if self.privileged:
                 info["qd"] = X[:, n : 2 * n].copy()
         return obs

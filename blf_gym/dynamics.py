@@ -39,9 +39,9 @@ __all__ = [
     "coriolis_times_into",
     "gravity_into",
     "wrench_torque_into",
-    "cholesky_factor_into",
-    "cholesky_solve_factored",
-    "cholesky_solve_into",
+    "ldl_factor_into",
+    "ldl_solve_factored",
+    "ldl_solve_into",
     "mass_matrix",
     "coriolis_matrix",
     "gravity",
@@ -158,46 +158,51 @@ def wrench_torque_into(trig, arm, wrench, out):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def cholesky_factor_into(M, L):
-    """Lower Cholesky factor of the SPD matrix M (flat row-major n*n) into ``L`` (n*n).
+def ldl_factor_into(M, L):
+    """Square-root-free Cholesky (LDL^T) factor of the SPD matrix M (flat row-major n*n) into ``L``.
 
-    The diagonal of ``L`` holds the *reciprocals* 1 / L_ii, so that solving with it
-    (:func:`cholesky_solve_factored`) needs no division: divisions are the slowest operations
-    in the closed loop's hot path.
+    ``L`` holds the unit lower-triangular factor below its diagonal and the *reciprocals* 1 / D_ii
+    on it, so that solving (:func:`ldl_solve_factored`) needs neither a square root nor a
+    division: those are the slowest operations in the closed loop's hot path.
     """
     n = int(np.sqrt(M.shape[0]) + 0.5)
-    for i in range(n):
-        for j in range(i + 1):
+    for j in range(n):
+        # D_j = M_jj - sum_k L_jk^2 D_k, with L_jk D_k kept in the upper triangle's mirror
+        d = M[j * n + j]
+        for k in range(j):
+            d -= L[j * n + k] * L[k * n + j]
+        inv = 1.0 / d
+        L[j * n + j] = inv
+        for i in range(j + 1, n):
             s = M[i * n + j]
             for k in range(j):
-                s -= L[i * n + k] * L[j * n + k]
-            if i == j:
-                L[i * n + i] = 1.0 / np.sqrt(s)
-            else:
-                L[i * n + j] = s * L[j * n + j]
+                s -= L[i * n + k] * L[k * n + j]
+            # s = L_ij D_j: kept in L's upper triangle for the next columns, then L_ij = s / D_j
+            L[j * n + i] = s
+            L[i * n + j] = s * inv
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def cholesky_solve_factored(L, b, out):
-    """Solve L L^T x = b into ``out``, with ``L`` from :func:`cholesky_factor_into`."""
+def ldl_solve_factored(L, b, out):
+    """Solve L D L^T x = b into ``out``, with ``L`` from :func:`ldl_factor_into`."""
     n = b.shape[0]
     for i in range(n):
         s = b[i]
         for k in range(i):
             s -= L[i * n + k] * out[k]
-        out[i] = s * L[i * n + i]
+        out[i] = s
     for i in range(n - 1, -1, -1):
-        s = out[i]
+        s = out[i] * L[i * n + i]
         for k in range(i + 1, n):
             s -= L[k * n + i] * out[k]
-        out[i] = s * L[i * n + i]
+        out[i] = s
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def cholesky_solve_into(M, b, out, L):
+def ldl_solve_into(M, b, out, L):
     """Solve M x = b for symmetric positive definite M (flat row-major n*n); ``L`` (n*n) is scratch."""
-    cholesky_factor_into(M, L)
-    cholesky_solve_factored(L, b, out)
+    ldl_factor_into(M, L)
+    ldl_solve_factored(L, b, out)
 
 
 # ---------------------------------------------------------------------------------------------

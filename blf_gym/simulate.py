@@ -46,9 +46,9 @@ from .controller import (
 from .dynamics import (
     WORK_PER_LINK,
     abs_trig_into,
-    cholesky_factor_into,
-    cholesky_solve_factored,
-    cholesky_solve_into,
+    ldl_factor_into,
+    ldl_solve_factored,
+    ldl_solve_into,
     coriolis_times_into,
     gravity_into,
     mass_matrix_into,
@@ -104,7 +104,7 @@ def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
         for j in range(n):
             acc += M[i * n + j] * qdd[j]
         r[i] = acc + c[i] + g[i] - u[i]
-    cholesky_solve_into(M, r, out, L)
+    ldl_solve_into(M, r, out, L)
 
 
 @intrinsic
@@ -206,7 +206,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
     abs_trig_into(q, trig)
     mass_matrix_into(trig, arm, Mp, pw)
     gravity_into(trig, arm, g, pw)
-    cholesky_factor_into(Mp, Lp)
+    ldl_factor_into(Mp, Lp)
     # The nominal model at the measured angles, shared by the law and the observer. Without noise
     # y == q, and when the nominal arm is the true one (the paper's cases) it equals the plant's.
     if same_angles and same_arm:
@@ -245,7 +245,7 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
         rhs[i] = hu[i] - c[i] - g[i] - jf[i] - friction(qd[i], plant[o + _VISC], plant[o + _COUL],
                                                        plant[o + _PSI])
         dx[i] = qd[i]
-    cholesky_solve_factored(Lp, rhs, dx[n : 2 * n])
+    ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
     _observer(y, xh, u, nominal, model, og, dx[2 * n :], wo)  # noqa: F821
 
 
@@ -298,7 +298,13 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         wl = _fixed(w, o, work_length(n))
         o += work_length(n)
         wo = _fixed(w, o, work_length(n))
+        o += work_length(n)
+        # the inputs of the true lumped disturbance at the latest 1 ms sample [q, qd, qdd, u],
+        # evaluated once at the end of the call unless every sample is recorded
+        smp = _fixed(w, o, 4 * n)
         x = _fixed(X[b], 0, nx)
+        recording = nrec[b] < rec.shape[1]
+        x3_pending = False
         res_b = residual[b]
         rp_b = rp[b]
         bp_b = bp[b]
@@ -394,7 +400,17 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                         break
                 if k % sps == 0:
                     # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
-                    _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_b, x3, Mp, Lp, pw)
+                    if recording:
+                        _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_b, x3, Mp, Lp, pw)
+                        for i in range(n):
+                            last[b, 3 * n + i] = x3[i]
+                    else:
+                        for i in range(n):
+                            smp[i] = x[i]
+                            smp[n + i] = x[n + i]
+                            smp[2 * n + i] = K0[n + i]
+                            smp[3 * n + i] = u[i]
+                        x3_pending = True
                     bad = False
                     for i in range(n):
                         e = x[i] - ref[i]
@@ -405,14 +421,14 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                         sum_un2 += un * un
                         if e >= bnd[0] or e <= -bnd[3]:
                             bad = True
-                        last[b, 3 * n + i] = x3[i]
                         last[b, 4 * n + i] = x[4 * n + i]
                     n_samples += 1
                     if bad:
                         viol_samples += 1
-                    if nrec[b] < rec.shape[1]:
+                    if recording:
                         _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, x3)
                         nrec[b] += 1
+                        recording = nrec[b] < rec.shape[1]
                 for i in range(n):
                     last[b, i] = u[i]
                     last[b, n + i] = ulaw[i]
@@ -434,6 +450,10 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
             for i in range(nx):
                 x[i] = xn[i]
             steps += 1
+        if x3_pending:
+            _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nom_b, x3, Mp, Lp, pw)
+            for i in range(n):
+                last[b, 3 * n + i] = x3[i]
         if not stopped:
             t_end = (k0 + steps) * dt
             reference_into(t_end, rp_b, arm_b, ref)
@@ -459,7 +479,7 @@ def scratch_length(n: int) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
     nx = 5 * n
     return (6 * nx + 5 * n + 6 + 5 * n + 2 * n * n + model_length(n)
-            + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n))
+            + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -740,6 +760,12 @@ class ClosedLoop:
         status = np.empty((N, N_STATUS), dtype=np.int64)
         sums = np.empty((N, SUM_EN2_JOINT + n))
         b = self._batch
+        if self.threads <= 1 or N == 1:
+            self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
+                         b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, res, nz, bool(terminate), rec,
+                         nrec, status, self.last, self._scratch, sums)
+            self.sums = sums
+            return rec, nrec, status
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
                   res, nz, rec, nrec, status, self.last, self._scratch, sums)
 
@@ -749,22 +775,17 @@ class ClosedLoop:
                          a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], bool(terminate),
                          a[10], a[11], a[12], a[13], a[14], a[15])
 
+        # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and write
+        # into views of the shared arrays. Each arm's arithmetic is the same as alone.
         threads = min(self.threads, N)
-        if threads <= 1:
-            run(0, N)
-            self.sums = sums
-            return rec, nrec, status
-        else:
-            # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and
-            # write into views of the shared arrays. Each arm's arithmetic is the same as alone.
-            if self._pool is None:
-                from concurrent.futures import ThreadPoolExecutor
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
 
-                self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="blf")
-            edges = np.linspace(0, N, threads + 1).round().astype(int)
-            futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
-            for f in futures:
-                f.result()
+            self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="blf")
+        edges = np.linspace(0, N, threads + 1).round().astype(int)
+        futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+        for f in futures:
+            f.result()
         self.sums = sums
         return rec, nrec, status
 

@@ -30,7 +30,7 @@ def pd_gravity_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u_out, 
     n = y.shape[0]
     nn = n * n
     for i in range(n):
-        # model = [M(y) (n*n), G(y) (n), cos (n), sin (n), chol(M) (n*n)]
+        # model = [M(y) (n*n), G(y) (n), cos (n), sin (n), LDL^T factor of M (n*n)]
         u_out[i] = -gains[0] * (y[i] - ref[i]) - gains[1] * (xhat[n + i] - ref[n + i]) + model[nn + i]
 
 
