@@ -266,3 +266,33 @@ def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
     assert tune_main([*cands, "--timesteps", "128", "--out", str(out)]) == 0
     assert "2 run(s) done, 0 to train" in capsys.readouterr().err
     assert tune_main([str(tmp_path / "missing.yaml"), "--out", str(out)]) == 2
+
+
+def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
+    from agents.report import main as report_main, pool_seeds
+    from blf_gym.metrics import write_results
+
+    def rec(policy, kind, rmse, viol=(0, 0, 0), fail=0.0):
+        return {"policy": policy, "kind": kind, "scenario": "paper-0.1hz", "episodes": 1, "dt": 1e-4,
+                "rmse_deg": list(rmse), "violations": list(viol), "violation_fraction": [0.0] * 3,
+                "max_excursion_deg": [0.0] * 3, "min_margin_deg": [1.0] * 3, "first_violation_s": None,
+                "failure_rate": fail, "rmse_cvar_deg": list(rmse), "torque_rms": [1.0] * 3,
+                "torque_peak": [1.0] * 3, "saturated_fraction": [0.0] * 3, "diverged": 0, "wall_s": 0.1}
+
+    records = [rec("proposed", "baseline", (1.0, 2.0, 3.0)),
+               rec("res_s0", "residual", (0.9, 1.9, 2.9)),            # beats the law in every joint
+               rec("res_s1", "residual", (0.8, 2.1, 2.5), (0, 4, 0), 1.0),  # loses on joint 2
+               rec("res_s2", "residual", (1.0, 1.0, 1.0))]            # ties joint 1: not a win
+    rows = {r["policy"]: r for r in pool_seeds(records)}
+    r = rows["res"]
+    assert r["seeds"] == 3 and r["seeds_beating_law"] == 1
+    np.testing.assert_allclose(r["rmse_mean"], [0.9, 5.0 / 3.0, 6.4 / 3.0])
+    np.testing.assert_allclose(r["rmse_min"], [0.8, 1.0, 1.0])
+    np.testing.assert_allclose(r["rmse_max"], [1.0, 2.1, 2.9])
+    np.testing.assert_allclose(r["ratio_mean"], [0.9, 5.0 / 6.0, 6.4 / 9.0])
+    assert r["violations"] == 4 and r["failure_rate"] == 1.0
+    assert rows["proposed"]["seeds"] == 1
+    write_results(records, tmp_path)
+    assert report_main([str(tmp_path / "results.json"), "--out", str(tmp_path / "t.md")]) == 0
+    assert "| res | residual | paper-0.1hz | 3 | 0.9000 (0.8000-1.0000)" in (tmp_path / "t.md").read_text()
+    assert report_main([str(tmp_path / "none.json")]) == 2

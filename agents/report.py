@@ -1,0 +1,103 @@
+"""``python -m agents.report``: pool a blf-eval ``results.json`` over training seeds.
+
+Agents trained with several seeds are named ``<name>_s<seed>`` (``blf-tune --seeds``). This groups
+their records by ``<name>`` and scenario and prints, per joint, the mean RMSE over seeds with its
+spread (min-max), the violations summed over seeds and the worst failure rate, beside the
+baselines, as a Markdown table. It also says, per scenario, in how many seeds the agent beats the
+proposed law in every joint.
+
+Example::
+
+    blf-eval --agents runs/final/*/model.zip --suite-seeds 20 --out runs/final_eval
+    python -m agents.report runs/final_eval/results.json --out docs/seeds_table.md
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections import defaultdict
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+__all__ = ["main", "pool_seeds"]
+
+_SEED = re.compile(r"^(?P<name>.+)_s(?P<seed>\d+)$")
+
+
+def pool_seeds(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per (policy, scenario); seeded agents pooled over their seeds."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
+    order: list[tuple[str, str]] = []
+    for r in records:
+        m = _SEED.match(r["policy"])
+        key = (m.group("name") if m else r["policy"], r["scenario"])
+        if key not in groups:
+            order.append(key)
+        groups[key].append(r)
+    law = {r["scenario"]: np.asarray(r["rmse_deg"]) for r in records if r["policy"] == "proposed"}
+    rows = []
+    for key in order:
+        recs = groups[key]
+        rmse = np.array([r["rmse_deg"] for r in recs])
+        row = {
+            "policy": key[0], "scenario": key[1], "kind": recs[0]["kind"], "seeds": len(recs),
+            "rmse_mean": rmse.mean(axis=0).tolist(), "rmse_min": rmse.min(axis=0).tolist(),
+            "rmse_max": rmse.max(axis=0).tolist(),
+            "violations": int(sum(sum(r["violations"]) for r in recs)),
+            "failure_rate": float(max(r["failure_rate"] for r in recs)),
+        }
+        if key[1] in law:
+            row["seeds_beating_law"] = int(sum(bool(np.all(np.asarray(r["rmse_deg"]) < law[key[1]])) for r in recs))
+            row["ratio_mean"] = (rmse.mean(axis=0) / law[key[1]]).tolist()
+        rows.append(row)
+    return rows
+
+
+def _markdown(rows: list[dict[str, Any]]) -> str:
+    out = ["| policy | kind | scenario | seeds | RMSE j1 (deg) | j2 | j3 | mean / law (j1 j2 j3) | "
+           "violating samples | worst failure rate | seeds beating the law in every joint |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        cells = []
+        for j in range(3):
+            if r["seeds"] > 1:
+                cells.append(f"{r['rmse_mean'][j]:.4f} ({r['rmse_min'][j]:.4f}-{r['rmse_max'][j]:.4f})")
+            else:
+                cells.append(f"{r['rmse_mean'][j]:.4f}")
+        ratio = " ".join(f"{v:.3f}" for v in r.get("ratio_mean", [])) or "-"
+        beat = f"{r['seeds_beating_law']} / {r['seeds']}" if r["kind"] != "baseline" and "seeds_beating_law" in r else "-"
+        out.append(f"| {r['policy']} | {r['kind']} | {r['scenario']} | {r['seeds']} | " + " | ".join(cells)
+                   + f" | {ratio} | {r['violations']:,} | {r['failure_rate']:.2f} | {beat} |")
+    out.append("")
+    out.append("RMSE: mean over training seeds, (min-max) across them; violating samples summed over "
+               "seeds and joints; failure rate: the worst seed's share of episodes with a violation.")
+    return "\n".join(out) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m agents.report", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("results", type=Path, help="results.json written by blf-eval --out")
+    p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")
+    args = p.parse_args(argv)
+    from blf_gym.io import atomic_write_text
+    from blf_gym.metrics import read_results
+
+    try:
+        records = read_results(args.results)
+    except (OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    table = _markdown(pool_seeds(records))
+    print(table)
+    if args.out is not None:
+        atomic_write_text(args.out, table)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
