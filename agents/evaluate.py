@@ -115,7 +115,8 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     from blf_gym.core import EnvCore
 
     kw = dict(meta["env_kwargs"])
-    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads"):
+    # the scenarios are given; the reward is not needed (a relative one would simulate the law)
+    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights"):
         kw.pop(k, None)
     core = EnvCore(len(scenarios), record=True, terminate_on_violation=False, threads=threads, **kw)
     for i in range(len(scenarios)):

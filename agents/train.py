@@ -2,12 +2,14 @@
 
 Examples::
 
+    blf-train --mode residual --scenario randomized --timesteps 1000000 --out runs/ppo_residual
     blf-train --algo sac --mode residual --timesteps 200000 --out runs/sac_residual
     blf-train --algo ppo --mode plain --scenario randomized --seed 3 --out runs/ppo_plain
-    blf-train --resume --out runs/sac_residual          # continue an interrupted run
+    blf-train --resume --out runs/ppo_residual          # continue an interrupted run
 
 Hyperparameters come from a YAML file per algorithm and env id (``agents/configs``, rl-zoo3
-style; ``--config`` picks another). A run folder holds ``model.zip``, ``vecnormalize.pkl`` (when
+style; ``--config`` picks another). Only ``ppo_PlanarBLFResidual-v0.yaml`` is tuned (see
+docs/tuning.md); the others are reasonable starting points. A run folder holds ``model.zip``, ``vecnormalize.pkl`` (when
 observations are normalized), ``metadata.json`` (config, package versions, seed, wall time, git
 commit), ``checkpoints/`` (model, replay buffer and normalization statistics, for ``--resume``),
 ``eval/curve.json`` (learning curves: every ``eval_freq`` steps, the deterministic policy's RMSE
@@ -133,6 +135,21 @@ def _make_progress_callback(total: int, start: int, enabled: bool):
     return _Progress()
 
 
+def _schedule(spec: str, where: str):
+    """``"lin_<x>"``: a value decaying linearly from x to 0 over training (rl-zoo's notation)."""
+    try:
+        if not spec.startswith("lin_"):
+            raise ValueError
+        start = float(spec[4:])
+    except ValueError:
+        raise ValueError(f"{where} must be a number or 'lin_<number>' (linear decay to 0), got {spec!r}") from None
+
+    def value(progress_remaining: float) -> float:
+        return progress_remaining * start
+
+    return value
+
+
 def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta: dict[str, Any],
                          suite_seeds: int, start_wall: float):
     """Learning curves: at the start, every ``every`` agent steps and at the end, score the
@@ -186,7 +203,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
 
 def train(
-    algo: str = "sac",
+    algo: str = "ppo",
     mode: str = "residual",
     controller: str | None = None,
     scenario: str = "paper-0.1hz",
@@ -258,6 +275,9 @@ def train(
             venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(cfg.get("normalize_reward", False)),
                                 gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
         kwargs = dict(cfg.get("hyperparams") or {})
+        for key in ("learning_rate", "clip_range"):
+            if isinstance(kwargs.get(key), str):
+                kwargs[key] = _schedule(kwargs[key], f"{cfg_path}: hyperparams.{key}")
         if cfg.get("policy_kwargs"):
             kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
         if cfg.get("action_noise_std") and algo in ("td3", "sac", "tqc"):
@@ -324,7 +344,8 @@ def train(
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-train", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--algo", default="sac", choices=ALGOS, help="SB3 algorithm (tqc needs sb3-contrib)")
+    p.add_argument("--algo", default="ppo", choices=ALGOS,
+                   help="SB3 algorithm (tqc needs sb3-contrib; ppo has the tuned residual config)")
     p.add_argument("--mode", default="residual", choices=MODES,
                    help="plain: the action is the torque; residual: added to the inner law")
     p.add_argument("--controller", default=None,
