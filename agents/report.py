@@ -6,10 +6,14 @@ spread (min-max), the violations summed over seeds and the worst failure rate, b
 baselines, as a Markdown table. It also says, per scenario, in how many seeds the agent beats the
 proposed law in every joint.
 
+With ``--windows SCENARIO AGENT`` it instead says where in time an agent gains or loses against
+the law, from the trajectories ``blf-eval --save-traj`` wrote.
+
 Example::
 
-    blf-eval --agents runs/final/*/model.zip --suite-seeds 20 --out runs/final_eval
+    blf-eval --agents runs/final/*/model.zip --suite-seeds 20 --out runs/final_eval --save-traj
     python -m agents.report runs/final_eval/results.json --out docs/seeds_table.md
+    python -m agents.report runs/final_eval/results.json --windows paper-0.1hz ppo_residual_s0
 """
 
 from __future__ import annotations
@@ -57,6 +61,39 @@ def pool_seeds(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     return rows
 
 
+def windows(traj_dir: Path, scenario: str, agent: str, law: str = "proposed", width: float = 0.5,
+            top: int = 5) -> str:
+    """Where an agent gains or loses against the law: the squared tracking error of each joint
+    summed over ``width``-second windows, agent minus law, from ``blf-eval --save-traj`` files
+    (``<scenario>__<policy>__0.npz``). Lists each joint's share of the MSE difference and the
+    windows that contribute most to it, both ways."""
+    def load(policy: str) -> tuple[np.ndarray, np.ndarray]:
+        f = traj_dir / f"{scenario}__{policy}__0.npz"
+        if not f.is_file():
+            raise ValueError(f"{f} not found (run blf-eval with --save-traj --out)")
+        with np.load(f) as d:
+            return np.asarray(d["t"]), np.degrees(np.asarray(d["e1"]))
+    t, e_law = load(law)
+    t_a, e_ag = load(agent)
+    k = min(len(t), len(t_a))
+    t, e_law, e_ag = t[:k], e_law[:k], e_ag[:k]
+    per = max(1, int(round(width / (t[1] - t[0]))))
+    m = (k // per) * per
+    d2 = (e_ag[:m] ** 2 - e_law[:m] ** 2).reshape(-1, per, e_law.shape[1]).sum(axis=1) / k
+    mse_law = (e_law ** 2).mean(axis=0)
+    lines = [f"{agent} against {law} on {scenario}: MSE difference per joint, as a share of the law's MSE, "
+             f"and the {width:g} s windows contributing most (deg^2, + = the agent is worse)"]
+    for j in range(e_law.shape[1]):
+        total = d2[:, j].sum()
+        lines.append(f"  joint {j + 1}: agent MSE / law MSE = {1 + total / mse_law[j]:.3f}")
+        for label, order in (("worse", np.argsort(-d2[:, j])), ("better", np.argsort(d2[:, j]))):
+            picks = [i for i in order[:top] if (d2[i, j] > 0) == (label == "worse") and d2[i, j] != 0]
+            if picks:
+                lines.append(f"    {label}: " + ", ".join(
+                    f"{t[i * per]:.1f}-{t[i * per] + width:.1f} s ({d2[i, j] / mse_law[j]:+.2f})" for i in picks))
+    return "\n".join(lines) + "\n"
+
+
 def _markdown(rows: list[dict[str, Any]]) -> str:
     out = ["| policy | kind | scenario | seeds | RMSE j1 (deg) | j2 | j3 | mean / law (j1 j2 j3) | "
            "violating samples | worst failure rate | seeds beating the law in every joint |",
@@ -83,7 +120,22 @@ def main(argv: Sequence[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("results", type=Path, help="results.json written by blf-eval --out")
     p.add_argument("--out", type=Path, default=None, help="also write the table to this Markdown file")
+    p.add_argument("--windows", nargs=2, metavar=("SCENARIO", "AGENT"), default=None,
+                   help="instead: where AGENT gains or loses against the law on SCENARIO, from the "
+                        "trajectories in the traj/ folder beside RESULTS (blf-eval --save-traj)")
     args = p.parse_args(argv)
+    if args.windows is not None:
+        try:
+            text = windows(args.results.parent / "traj", *args.windows)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        print(text)
+        if args.out is not None:
+            from blf_gym.io import atomic_write_text
+
+            atomic_write_text(args.out, text)
+        return 0
     from blf_gym.io import atomic_write_text
     from blf_gym.metrics import read_results
 
