@@ -23,7 +23,7 @@ from .simulate import (
     ST_VIOL_SAMPLES,
     ST_VIOL_STEPS,
     SUM_EN2,
-    SUM_EN2_JOINT,
+    SUM_E2_JOINT,
     SUM_SAMPLES,
     SUM_UN2,
     ClosedLoop,
@@ -64,12 +64,14 @@ class RewardWeights:
     violation: float = 100.0
     """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
     relative: bool = False
-    """Measure tracking against the law: E becomes the mean over joints of E_j / E_law_j, with
-    E_j the step's mean of (e1 / bound)^2 for joint j and E_law_j the same quantity averaged over
-    a whole episode of the reference law alone on the episode's scenario (the inner controller in
-    residual mode, the proposed law in plain mode; no measurement noise). A policy at the law's
-    level then loses about ``tracking`` per step on every scenario and joint, whatever their error
-    scale. Each ratio is capped at ``relative_cap``."""
+    """Measure tracking against the law, in the evaluation metric's own terms: E becomes the mean
+    over joints of E_j / E_law_j, with E_j the step's mean of e1_j^2 (the squared error itself,
+    not normalized by the bounds, like the RMSE) and E_law_j its mean over a whole episode of the
+    reference law alone on the episode's scenario (the inner controller in residual mode, the
+    proposed law in plain mode; no measurement noise). A policy at the law's level then loses
+    about ``tracking`` per step on every scenario and joint, whatever their error scale, and the
+    episode's sum of E is its MSE relative to the law's. Each ratio is capped at
+    ``relative_cap``."""
     relative_cap: float = 100.0
     """Cap of each joint's ratio when ``relative`` (> 0); E <= relative_cap inside the bounds."""
 
@@ -229,13 +231,13 @@ _R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_
 
 
 @njit(cache=True, error_model="numpy")
-def _step_outputs(status, sums, law_en2, wvec, t_end, durations, out):
+def _step_outputs(status, sums, law_e2, wvec, t_end, durations, out):
     """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
     the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
     violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
     diverged."""
     N = status.shape[0]
-    n = law_en2.shape[1]
+    n = law_e2.shape[1]
     relative = wvec[0] > 0.0
     cap, alive, w_tracking, w_torque, w_violation = wvec[1], wvec[2], wvec[3], wvec[4], wvec[5]
     terminate_on_violation = wvec[6] > 0.0
@@ -245,7 +247,7 @@ def _step_outputs(status, sums, law_en2, wvec, t_end, durations, out):
         if relative:
             acc = 0.0
             for j in range(n):
-                acc += min(sums[b, SUM_EN2_JOINT + j] / (samples * law_en2[b, j]), cap)
+                acc += min(sums[b, SUM_E2_JOINT + j] / (samples * law_e2[b, j]), cap)
             tr = acc / n
         else:
             tr = sums[b, SUM_EN2] / (samples * n)
@@ -380,7 +382,7 @@ class EnvCore:
         self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
-        self._law_en2 = np.ones((N, n))
+        self._law_e2 = np.ones((N, n))
         self._stds = np.zeros(N)
         self._noisy: list[int] = []
         self._obs64 = np.empty((N, self.obs_dim))
@@ -418,7 +420,7 @@ class EnvCore:
         self._noisy = [int(i) for i in np.flatnonzero(self._stds > 0)]
         self.loop.set_scenarios(scs, which=list(idx))
         if self.weights.relative:
-            self._law_en2[list(idx)] = self.law_level(scs)
+            self._law_e2[list(idx)] = self.law_level(scs)
         for i in idx:
             self.steps[i] = 0
             self.last_x3[i] = 0.0
@@ -426,7 +428,7 @@ class EnvCore:
             self._chunks[i] = []
 
     def law_level(self, scenarios: Sequence[Scenario]) -> np.ndarray:
-        """(len(scenarios), n): each joint's mean of (e1 / bound)^2 over a whole episode of the
+        """(len(scenarios), n): each joint's mean of e1^2 (rad^2) over a whole episode of the
         reference law alone on each scenario (see ``RewardWeights.relative``), without noise."""
         out = np.empty((len(scenarios), self.n))
         todo = []
@@ -440,10 +442,10 @@ class EnvCore:
             ref = self.controller if self.residual else make_controller("proposed")
             loop = ClosedLoop([sc for _, sc in todo], ref, threads=self._threads)
             loop.advance(todo[0][1].sim.n_steps, record_samples=0)
-            level = loop.sums[:, SUM_EN2_JOINT : SUM_EN2_JOINT + self.n] / np.maximum(
+            level = loop.sums[:, SUM_E2_JOINT : SUM_E2_JOINT + self.n] / np.maximum(
                 loop.sums[:, SUM_SAMPLES:SUM_SAMPLES + 1], 1.0)
             # a floor keeps the ratio finite for a law that tracks perfectly
-            level = np.maximum(level, 1e-12)
+            level = np.maximum(level, 1e-16)
             for (k, sc), lv in zip(todo, level):
                 out[k] = lv
                 if len(self._law_cache) < 64:
@@ -489,7 +491,7 @@ class EnvCore:
         w = self.weights
         res = np.empty((8, N))
         t_end = self.loop.time
-        flags = _step_outputs(status, self.loop.sums, self._law_en2, self._wvec, t_end, self._durations, res)
+        flags = _step_outputs(status, self.loop.sums, self._law_e2, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         terminated = res[_R_TERMINATED] > 0.0
         truncated = res[_R_TRUNCATED] > 0.0

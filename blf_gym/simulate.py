@@ -83,8 +83,8 @@ N_CHANNELS = len(CHANNELS)
 ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = range(6)
 N_STATUS = 6
 # sums columns: ODE3 error-estimate maximum, sum over samples and joints of (e1/bound)^2 and of
-# (u/max_torque)^2, number of 1 ms samples, then per joint the sum over samples of (e1/bound)^2
-SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES, SUM_EN2_JOINT = range(5)
+# (u/max_torque)^2, number of 1 ms samples, then per joint the sum over samples of e1^2 (rad^2)
+SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES, SUM_E2_JOINT = range(5)
 
 
 @njit(cache=True, error_model="numpy")
@@ -416,7 +416,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                         e = x[i] - ref[i]
                         en = e / bnd[0] if e >= 0.0 else e / bnd[3]
                         sum_en2 += en * en
-                        sums[b, 4 + i] += en * en
+                        sums[b, 4 + i] += e * e
                         un = u[i] / umax
                         sum_un2 += un * un
                         if e >= bnd[0] or e <= -bnd[3]:
@@ -736,7 +736,7 @@ class ClosedLoop:
         status columns [steps, diverged (0, 1 non-finite, 2 unstable), violating steps, first
         violating step or -1, saturated steps, violating 1 ms samples]. ``self.sums`` then holds
         per arm [max ODE3 error estimate, sum of (e1/bound)^2, sum of (u/max_torque)^2, samples,
-        then the sum of (e1/bound)^2 of each joint] over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated] at the start of the
+        then the sum of e1^2 (rad^2) of each joint] over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated] at the start of the
         last integration step and [x3, x3_hat] at the last 1 ms sample.
         """
         N, n = self.N, self.n
@@ -758,7 +758,7 @@ class ClosedLoop:
         rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
         nrec = np.zeros(N, dtype=np.int64)
         status = np.empty((N, N_STATUS), dtype=np.int64)
-        sums = np.empty((N, SUM_EN2_JOINT + n))
+        sums = np.empty((N, SUM_E2_JOINT + n))
         b = self._batch
         if self.threads <= 1 or N == 1:
             self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
