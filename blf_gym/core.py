@@ -73,7 +73,13 @@ class RewardWeights:
     episode's sum of E is its MSE relative to the law's. Each ratio is capped at
     ``relative_cap``."""
     relative_cap: float = 100.0
-    """Cap of each joint's ratio when ``relative`` (> 0); E <= relative_cap inside the bounds."""
+    """Cap of each joint's ratio when ``relative`` (> 0); |E| <= relative_cap inside the bounds."""
+    law_baseline: bool = False
+    """With ``relative``: subtract the reference law's own squared error at the same agent step,
+    so E_j = (e1_j^2 - e1_law_j^2) / E_law_j (each step's mean over its 1 ms samples). A policy at
+    the law's level then gets about 0 per step, and the large, policy-independent swings of the
+    error (the start-up transient, the elbow folds) cancel; the episode's sum of E is still its
+    MSE relative to the law's, shifted by a constant. Variance reduction for learning."""
 
     def __post_init__(self) -> None:
         if self.alive is None:
@@ -82,6 +88,8 @@ class RewardWeights:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"RewardWeights.{name} must be finite and >= 0, got {v!r}")
+        if self.law_baseline and not self.relative:
+            raise ValueError("RewardWeights.law_baseline needs relative=True")
         if not (math.isfinite(self.relative_cap) and self.relative_cap > 0):
             raise ValueError(f"RewardWeights.relative_cap must be finite and > 0, got {self.relative_cap!r}")
 
@@ -231,7 +239,7 @@ _R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_
 
 
 @njit(cache=True, error_model="numpy")
-def _step_outputs(status, sums, law_e2, wvec, t_end, durations, out):
+def _step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
     """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
     the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
     violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
@@ -247,7 +255,9 @@ def _step_outputs(status, sums, law_e2, wvec, t_end, durations, out):
         if relative:
             acc = 0.0
             for j in range(n):
-                acc += min(sums[b, SUM_E2_JOINT + j] / (samples * law_e2[b, j]), cap)
+                # base is zero unless law_baseline: then the law's own value at this agent step
+                r = (sums[b, SUM_E2_JOINT + j] / samples - base[b, j]) / law_e2[b, j]
+                acc += min(max(r, -cap), cap)
             tr = acc / n
         else:
             tr = sums[b, SUM_EN2] / (samples * n)
@@ -383,7 +393,9 @@ class EnvCore:
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
         self._law_e2 = np.ones((N, n))
+        self._law_steps = np.zeros((N, self.max_episode_steps if self.weights.relative else 0, n))
         self._stds = np.zeros(N)
+        self._no_base = np.zeros((N, n))
         self._noisy: list[int] = []
         self._obs64 = np.empty((N, self.obs_dim))
         self._law_cache: dict[Scenario, np.ndarray] = {}
@@ -420,37 +432,47 @@ class EnvCore:
         self._noisy = [int(i) for i in np.flatnonzero(self._stds > 0)]
         self.loop.set_scenarios(scs, which=list(idx))
         if self.weights.relative:
-            self._law_e2[list(idx)] = self.law_level(scs)
+            self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
         for i in idx:
             self.steps[i] = 0
             self.last_x3[i] = 0.0
             self.done[i] = False
             self._chunks[i] = []
 
-    def law_level(self, scenarios: Sequence[Scenario]) -> np.ndarray:
-        """(len(scenarios), n): each joint's mean of e1^2 (rad^2) over a whole episode of the
-        reference law alone on each scenario (see ``RewardWeights.relative``), without noise."""
-        out = np.empty((len(scenarios), self.n))
+    def law_level(self, scenarios: Sequence[Scenario]) -> tuple[np.ndarray, np.ndarray]:
+        """The reference law alone on each scenario, without noise (see
+        ``RewardWeights.relative``): each joint's mean of e1^2 (rad^2) over the whole episode,
+        (len(scenarios), n), and its mean over each agent step's 1 ms samples,
+        (len(scenarios), max_episode_steps, n)."""
+        mean = np.empty((len(scenarios), self.n))
+        steps = np.empty((len(scenarios), self.max_episode_steps, self.n))
         todo = []
         for k, sc in enumerate(scenarios):
             sc = replace(sc, angle_noise_std=0.0)
             if sc in self._law_cache:
-                out[k] = self._law_cache[sc]
+                mean[k], steps[k] = self._law_cache[sc]
             else:
                 todo.append((k, sc))
         if todo:
             ref = self.controller if self.residual else make_controller("proposed")
             loop = ClosedLoop([sc for _, sc in todo], ref, threads=self._threads)
-            loop.advance(todo[0][1].sim.n_steps, record_samples=0)
-            level = loop.sums[:, SUM_E2_JOINT : SUM_E2_JOINT + self.n] / np.maximum(
-                loop.sums[:, SUM_SAMPLES:SUM_SAMPLES + 1], 1.0)
+            per = np.zeros((len(todo), self.max_episode_steps, self.n))
+            total = np.zeros((len(todo), self.n))
+            samples = np.zeros((len(todo), 1))
+            for j in range(self.max_episode_steps):
+                loop.advance(self.steps_per_period, record_samples=0)
+                e2 = loop.sums[:, SUM_E2_JOINT : SUM_E2_JOINT + self.n]
+                ns = loop.sums[:, SUM_SAMPLES : SUM_SAMPLES + 1]
+                per[:, j] = e2 / np.maximum(ns, 1.0)
+                total += e2
+                samples += ns
             # a floor keeps the ratio finite for a law that tracks perfectly
-            level = np.maximum(level, 1e-16)
-            for (k, sc), lv in zip(todo, level):
-                out[k] = lv
+            level = np.maximum(total / np.maximum(samples, 1.0), 1e-16)
+            for i, (k, sc) in enumerate(todo):
+                mean[k], steps[k] = level[i], per[i]
                 if len(self._law_cache) < 64:
-                    self._law_cache[sc] = lv
-        return out
+                    self._law_cache[sc] = (level[i].copy(), per[i].copy())
+        return mean, steps
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
@@ -491,7 +513,12 @@ class EnvCore:
         w = self.weights
         res = np.empty((8, N))
         t_end = self.loop.time
-        flags = _step_outputs(status, self.loop.sums, self._law_e2, self._wvec, t_end, self._durations, res)
+        if self.weights.law_baseline:
+            k = np.minimum(self.steps - 1, self.max_episode_steps - 1)
+            base = self._law_steps[np.arange(N), k]
+        else:
+            base = self._no_base
+        flags = _step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         terminated = res[_R_TERMINATED] > 0.0
         truncated = res[_R_TRUNCATED] > 0.0

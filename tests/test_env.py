@@ -722,6 +722,16 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
         assert not term
         assert np.mean(terms) == pytest.approx(1.0, rel=1e-9), scenario
         assert np.std(terms) > 0.05  # per step it varies: the ratio is not trivially 1
+    # with the law's own per-step error subtracted, the law itself scores exactly 0 at every step
+    wb = dict(w, law_baseline=True)
+    env = gym.make("PlanarBLFResidual-v0", scenario="randomized", duration=2.0, reward_weights=wb,
+                   angle_noise_std=0.0)
+    env.reset(seed=5)
+    while True:
+        _, r, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
+        assert info["reward_info"]["tracking"] == 0.0 and r == 0.0
+        if term or trunc:
+            break
     # a residual that pushes the arm off the reference costs more than the law
     env = gym.make("PlanarBLFResidual-v0", duration=2.0, reward_weights=w, residual_scale=5.0)
     env.reset(seed=3)
@@ -732,6 +742,18 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
         if term or trunc:
             break
     assert np.mean(terms) > 2.0
+    env = gym.make("PlanarBLFResidual-v0", duration=2.0, reward_weights=wb, residual_scale=5.0)
+    env.reset(seed=3)
+    terms_b = []
+    while True:
+        _, r, term, trunc, info = env.step(np.array([1.0, -1.0, 1.0], dtype=np.float32))
+        terms_b.append(-info["reward_info"]["tracking"])
+        if term or trunc:
+            break
+    # the same episode: the baseline shifts the episode's mean by exactly the law's level (1)
+    assert np.mean(terms_b) == pytest.approx(np.mean(terms) - 1.0, rel=1e-9)
+    with pytest.raises(ValueError, match="law_baseline needs relative"):
+        RewardWeights(law_baseline=True)
     # the cap bounds each joint's ratio, and the violation check uses it
     with pytest.raises(ValueError, match="violation must be >= "):
         gym.make("PlanarBLFResidual-v0", reward_weights={"relative": True, "alive": 0.0, "violation": 1e5})
