@@ -82,15 +82,17 @@ def windows(traj_dir: Path, scenario: str, agent: str, law: str = "proposed", wi
     d2 = (e_ag[:m] ** 2 - e_law[:m] ** 2).reshape(-1, per, e_law.shape[1]).sum(axis=1) / k
     mse_law = (e_law ** 2).mean(axis=0)
     lines = [f"{agent} against {law} on {scenario}: MSE difference per joint, as a share of the law's MSE, "
-             f"and the {width:g} s windows contributing most (deg^2, + = the agent is worse)"]
+             f"and the {width:g} s windows contributing most (same share; + = the agent is worse)"]
     for j in range(e_law.shape[1]):
         total = d2[:, j].sum()
         lines.append(f"  joint {j + 1}: agent MSE / law MSE = {1 + total / mse_law[j]:.3f}")
         for label, order in (("worse", np.argsort(-d2[:, j])), ("better", np.argsort(d2[:, j]))):
-            picks = [i for i in order[:top] if (d2[i, j] > 0) == (label == "worse") and d2[i, j] != 0]
+            # windows that change the MSE by less than 0.1 % of the law's are not listed
+            picks = [i for i in order[:top] if (d2[i, j] > 0) == (label == "worse")
+                     and abs(d2[i, j]) >= 1e-3 * mse_law[j]]
             if picks:
                 lines.append(f"    {label}: " + ", ".join(
-                    f"{t[i * per]:.1f}-{t[i * per] + width:.1f} s ({d2[i, j] / mse_law[j]:+.2f})" for i in picks))
+                    f"{t[i * per]:.1f}-{t[i * per] + width:.1f} s ({d2[i, j] / mse_law[j]:+.3f})" for i in picks))
     return "\n".join(lines) + "\n"
 
 

@@ -42,8 +42,10 @@ class RewardWeights:
 
     E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
     normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
-    (u / max_torque)^2 (<= 1). Every step inside the bounds therefore loses at most
-    ``tracking + torque - alive`` against the alive term. Ending an episode early by a violation
+    (u / max_torque)^2 (<= 1). With ``relative`` (below) E is a ratio to the law's error instead,
+    capped at ``relative_cap`` in size, so "max E" below is 1 or ``relative_cap``. Every step
+    inside the bounds therefore loses at most ``tracking * max E + torque - alive`` against the
+    alive term. Ending an episode early by a violation
     never pays when either
 
     * ``alive >= tracking * max E + torque`` (the default: every step inside the bounds earns
@@ -398,7 +400,7 @@ class EnvCore:
         self._no_base = np.zeros((N, n))
         self._noisy: list[int] = []
         self._obs64 = np.empty((N, self.obs_dim))
-        self._law_cache: dict[Scenario, np.ndarray] = {}
+        self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
         self._threads = threads
 
     # ------------------------------------------------------------------ reset

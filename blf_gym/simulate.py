@@ -736,7 +736,8 @@ class ClosedLoop:
         status columns [steps, diverged (0, 1 non-finite, 2 unstable), violating steps, first
         violating step or -1, saturated steps, violating 1 ms samples]. ``self.sums`` then holds
         per arm [max ODE3 error estimate, sum of (e1/bound)^2, sum of (u/max_torque)^2, samples,
-        then the sum of e1^2 (rad^2) of each joint] over the call's 1 ms samples, and ``self.last`` [u, u_law, saturated] at the start of the
+        then the sum of e1^2 (rad^2) of each joint] over the call's 1 ms samples, and
+        ``self.last`` [u, u_law, saturated] at the start of the
         last integration step and [x3, x3_hat] at the last 1 ms sample.
         """
         N, n = self.N, self.n

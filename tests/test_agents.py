@@ -331,7 +331,7 @@ def test_report_windows_finds_where_an_agent_loses(tmp_path):
     text = windows(traj, "paper-0.1hz", "agent_s0")
     # joint 1: the window adds (9 - 1) * 500 / 3000 = 1.333 of the law's MSE
     assert "joint 1: agent MSE / law MSE = 2.333" in text
-    assert "worse: 1.0-1.5 s (+1.33)" in text
+    assert "worse: 1.0-1.5 s (+1.333)" in text
     assert "joint 2: agent MSE / law MSE = 1.000" in text
     assert "joint 3: agent MSE / law MSE = 0.250" in text
     (tmp_path / "results.json").write_text("{}")
