@@ -9,8 +9,8 @@ Examples::
 
 Hyperparameters come from a YAML file per algorithm and env id (``agents/configs``, rl-zoo3
 style; ``--config`` picks another). Only ``ppo_PlanarBLFResidual-v0.yaml`` is tuned (see
-docs/tuning.md); the others are reasonable starting points. A run folder holds ``model.zip``, ``vecnormalize.pkl`` (when
-observations are normalized), ``metadata.json`` (config, package versions, seed, wall time, git
+docs/tuning.md); the others are reasonable starting points. A run folder holds ``model.zip``,
+``vecnormalize.pkl`` (when observations are normalized), ``metadata.json`` (config, package versions, seed, wall time, git
 commit), ``checkpoints/`` (model, replay buffer and normalization statistics, for ``--resume``),
 ``eval/curve.json`` (learning curves: every ``eval_freq`` steps, the deterministic policy's RMSE
 and violations with blf-eval's metrics on both paper presets and ``curve_suite_seeds`` held-out
@@ -169,6 +169,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:
             self.points = json.loads(path.read_text())["points"] if path.is_file() else []
+            # after --resume, points past the checkpoint belong to the abandoned stretch
+            self.points = [p for p in self.points if p["timesteps"] <= self.num_timesteps]
             self.next_at = (self.num_timesteps // every + 1) * every
             if not self.points:
                 self._evaluate()  # the untrained policy (for a residual agent, about the law alone)
@@ -236,6 +238,8 @@ def train(
         raise ValueError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
     cfg_path = Path(config) if config else CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
     cfg = load_config(cfg_path)
+    if cfg.get("normalize_reward") and not cfg.get("normalize"):
+        raise ValueError(f"{cfg_path}: normalize_reward needs normalize: true")
     env_kwargs: dict[str, Any] = {"scenario": scenario, **(cfg.get("env") or {})}
     if mode == "residual":
         env_kwargs["controller"] = controller

@@ -65,6 +65,11 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
     cfg = str(_tiny(tmp_path, "sac"))
     assert train_main(["--algo", "sac", "--timesteps", "200", "--config", cfg, "--out", str(out),
                        "--no-progress"]) == 0
+    # as if the run had been interrupted after an evaluation past its last checkpoint
+    cpath = out / "eval" / "curve.json"
+    c = json.loads(cpath.read_text())
+    c["points"].append(dict(c["points"][-1], timesteps=250))
+    cpath.write_text(json.dumps(c))
     # the latest checkpoint is at 200 steps; resume to 400
     assert train_main(["--algo", "sac", "--timesteps", "400", "--config", cfg, "--out", str(out),
                        "--resume", "--no-progress"]) == 0
@@ -72,6 +77,10 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
     assert meta["timesteps"] == 400 and meta["completed"]
     steps = sorted(int(f.stem.split("_")[1]) for f in (out / "checkpoints").glob("model_*_steps.zip"))
     assert steps[-1] == 400 and 300 in steps  # saved after the resume point, not from zero
+    # the learning curve continues from the checkpoint (the stretch past it is dropped): one point
+    # per step count, in order
+    curve = [p["timesteps"] for p in json.loads(cpath.read_text())["points"]]
+    assert curve == sorted(set(curve)) and curve[0] == 0 and curve[-1] == 400 and 250 not in curve
     model, meta, norm = load_agent(out / "model.zip")
     model.load_replay_buffer(out / "checkpoints" / "model_replay_buffer_400_steps.pkl")
     # a row per vector step of the 2 envs: 400 steps = 200 rows if the resumed run kept the first
