@@ -64,6 +64,10 @@ def load_config(path: str | Path) -> dict[str, Any]:
     env_unknown = sorted(set(cfg.get("env", {}) or {}) - set(ENV_KEYS))
     if env_unknown:
         raise ValueError(f"{path}: unknown env key(s) {env_unknown}; accepted: {list(ENV_KEYS)}")
+    for key in ("n_envs", "eval_freq", "checkpoint_freq", "curve_suite_seeds"):
+        v = cfg.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ValueError(f"{path}: {key} must be an integer >= 1, got {v!r}")
     return cfg
 
 

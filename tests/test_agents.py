@@ -112,6 +112,10 @@ def test_bad_training_input_is_named(tmp_path, capsys):
     bad.write_text("env:\n  controll_period: 0.01\n")
     with pytest.raises(ValueError, match="controll_period"):
         load_config(bad)
+    for key, value in (("curve_suite_seeds", 0), ("eval_freq", -5), ("n_envs", 1.5)):
+        bad.write_text(f"{key}: {value}\n")
+        with pytest.raises(ValueError, match=f"{key} must be an integer >= 1"):
+            load_config(bad)
     assert train_main(["--algo", "sac", "--timesteps", "10", "--resume", "--out", str(tmp_path / "none")]) == 2
 
 
