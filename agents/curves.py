@@ -40,6 +40,10 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         if not path.is_file():
             raise ValueError(f"{run}: no eval/curve.json (was it trained by blf-train?)")
         curves.append((Path(run).name, json.loads(path.read_text())))
+    scoring = {(c.get("suite_seeds", 4), c.get("env_kwargs", {}).get("duration")) for _, c in curves}
+    if len(scoring) > 1:
+        raise ValueError("the runs' curves were scored on different scenarios (curve_suite_seeds or "
+                         f"duration differ: {sorted(scoring, key=str)}); plot them separately")
     if law is None:
         from .tune import law_levels
 

@@ -96,10 +96,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .train import load_config
 
     try:
-        for c in args.configs:
-            load_config(c)
+        cfgs = [load_config(c) for c in args.configs]
         if args.timesteps < 1 or args.jobs < 1:
             raise ValueError("--timesteps and --jobs must be >= 1")
+        # every candidate is scored against the law on the same scenarios
+        scoring = {(c.get("curve_suite_seeds", 4), (c.get("env") or {}).get("duration")) for c in cfgs}
+        if len(scoring) > 1:
+            raise ValueError("all candidates must share curve_suite_seeds and env.duration (they are "
+                             f"scored on the same scenarios); got {sorted(scoring, key=str)}")
     except ValueError as exc:
         print(f"blf-tune: error: {exc}", file=sys.stderr)
         return 2
@@ -138,8 +142,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             proc.wait()
         print("\nblf-tune: interrupted; finished runs are kept, run the same command to resume", file=sys.stderr)
         return 130
-    duration = load_config(args.configs[0]).get("env", {}).get("duration")
-    law = law_levels(int(load_config(args.configs[0]).get("curve_suite_seeds", 4)), duration)
+    suite_seeds, duration = scoring.pop()
+    law = law_levels(int(suite_seeds), duration)
     rows = [score_run(r, law) for r in runs if (r / "eval" / "curve.json").is_file()]
     atomic_write_json(args.out / "tune.json", {"law": law, "rows": rows})
     table = _markdown(rows, law)

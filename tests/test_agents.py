@@ -279,6 +279,10 @@ def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
     assert tune_main([*cands, "--timesteps", "128", "--out", str(out)]) == 0
     assert "2 run(s) done, 0 to train" in capsys.readouterr().err
     assert tune_main([str(tmp_path / "missing.yaml"), "--out", str(out)]) == 2
+    other = tmp_path / "other.yaml"
+    other.write_text(Path(cands[0]).read_text().replace("curve_suite_seeds: 1", "curve_suite_seeds: 2"))
+    assert tune_main([cands[0], str(other), "--out", str(out)]) == 2
+    assert "share curve_suite_seeds" in capsys.readouterr().err
 
 
 def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
