@@ -250,6 +250,12 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
     assert curves_main([str(out), "--out", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert curves_main([str(tmp_path / "nothing"), "--out", str(tmp_path / "d.png")]) == 2
+    # runs scored on different scenarios cannot share one law line
+    other = tmp_path / "other" / "eval"
+    other.mkdir(parents=True)
+    (other / "curve.json").write_text(json.dumps(dict(curve, suite_seeds=3)))
+    assert curves_main([str(out), str(other.parent), "--out", str(tmp_path / "e.png")]) == 2
+    assert not (tmp_path / "e.png").exists()
 
 
 def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
