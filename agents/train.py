@@ -172,6 +172,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:
+            self._t0 = time.time()
             self.points = json.loads(path.read_text())["points"] if path.is_file() else []
             # after --resume, points past the checkpoint belong to the abandoned stretch
             self.points = [p for p in self.points if p["timesteps"] <= self.num_timesteps]
@@ -203,9 +204,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
             if self.points and self.points[-1]["timesteps"] != self.num_timesteps:
                 self._evaluate()
 
-    cb = _Curve()
-    cb._t0 = time.time()
-    return cb
+    return _Curve()
 
 
 def train(

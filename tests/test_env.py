@@ -702,6 +702,19 @@ def test_observation_index_matches_the_layout_table():
     assert rows[idx["qd"].start][0].startswith("qd_1 true") and idx["x3"].stop == len(rows)
 
 
+def _tracking_terms(env, action, seed):
+    """One episode of a constant action: the per-step tracking terms (sign flipped, so >= 0 means
+    a loss), the rewards, and whether it terminated."""
+    env.reset(seed=seed)
+    terms, rewards = [], []
+    while True:
+        _, r, term, trunc, info = env.step(np.asarray(action, dtype=np.float32))
+        terms.append(-info["reward_info"]["tracking"])
+        rewards.append(r)
+        if term or trunc:
+            return np.array(terms), np.array(rewards), term
+
+
 def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
     """With relative=True, E = mean_j E_j / E_law_j where E_law_j is the law's episode mean; a zero
     residual reproduces the law bit for bit, so the episode mean of E must be 1 (up to rounding) on
@@ -712,13 +725,7 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
         # the law's reference episode has no measurement noise, so the suite's is switched off here
         env = gym.make("PlanarBLFResidual-v0", scenario=scenario, duration=2.0, reward_weights=w,
                        angle_noise_std=0.0)
-        env.reset(seed=3)
-        terms = []
-        while True:
-            _, r, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
-            terms.append(-info["reward_info"]["tracking"])
-            if term or trunc:
-                break
+        terms, _, term = _tracking_terms(env, np.zeros(3), seed=3)
         assert not term
         assert np.mean(terms) == pytest.approx(1.0, rel=1e-9), scenario
         assert np.std(terms) > 0.05  # per step it varies: the ratio is not trivially 1
@@ -726,30 +733,15 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
     wb = dict(w, law_baseline=True)
     env = gym.make("PlanarBLFResidual-v0", scenario="randomized", duration=2.0, reward_weights=wb,
                    angle_noise_std=0.0)
-    env.reset(seed=5)
-    while True:
-        _, r, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
-        assert info["reward_info"]["tracking"] == 0.0 and r == 0.0
-        if term or trunc:
-            break
+    terms_law, rewards_law, term = _tracking_terms(env, np.zeros(3), seed=5)
+    assert not term and np.all(terms_law == 0.0) and np.all(rewards_law == 0.0)
     # a residual that pushes the arm off the reference costs more than the law
+    push = np.array([1.0, -1.0, 1.0])
     env = gym.make("PlanarBLFResidual-v0", duration=2.0, reward_weights=w, residual_scale=5.0)
-    env.reset(seed=3)
-    terms = []
-    while True:
-        _, r, term, trunc, info = env.step(np.array([1.0, -1.0, 1.0], dtype=np.float32))
-        terms.append(-info["reward_info"]["tracking"])
-        if term or trunc:
-            break
+    terms, _, _ = _tracking_terms(env, push, seed=3)
     assert np.mean(terms) > 2.0
     env = gym.make("PlanarBLFResidual-v0", duration=2.0, reward_weights=wb, residual_scale=5.0)
-    env.reset(seed=3)
-    terms_b = []
-    while True:
-        _, r, term, trunc, info = env.step(np.array([1.0, -1.0, 1.0], dtype=np.float32))
-        terms_b.append(-info["reward_info"]["tracking"])
-        if term or trunc:
-            break
+    terms_b, _, _ = _tracking_terms(env, push, seed=3)
     # the same episode: the baseline shifts the episode's mean by exactly the law's level (1)
     assert np.mean(terms_b) == pytest.approx(np.mean(terms) - 1.0, rel=1e-9)
     with pytest.raises(ValueError, match="law_baseline needs relative"):
