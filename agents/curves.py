@@ -8,6 +8,8 @@ proposed law's level on the same scenarios as a dashed line. A last row counts v
 Example::
 
     blf-curves runs/final/sac_s0 runs/final/sac_s1 runs/final/sac_s2 --out docs/learning_curves.png
+
+Without ``--out`` the figure goes to ``learning_curves.png`` in the first run's folder.
 """
 
 from __future__ import annotations
@@ -85,17 +87,29 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
     return out
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-curves", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="run folders written by blf-train")
-    p.add_argument("--out", type=Path, default=Path("learning_curves.png"), help="PNG to write")
-    p.add_argument("--title", default=None)
-    args = p.parse_args(argv)
+    p.add_argument("--out", type=Path, default=None, metavar="PNG",
+                   help="PNG to write (default: learning_curves.png in the first run's folder)")
+    p.add_argument("--title", default=None,
+                   help="figure title (default: 'Learning curves: deterministic policy, blf-eval metrics')")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    out = args.out if args.out is not None else args.runs[0] / "learning_curves.png"
     try:
-        path = plot_curves(args.runs, args.out, title=args.title)
+        path = plot_curves(args.runs, out, title=args.title)
     except ValueError as exc:
         print(f"blf-curves: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:
+        from blf_gym.io import os_error_message
+
+        print(f"blf-curves: error: {os_error_message(exc, out)}", file=sys.stderr)
         return 2
     print(f"wrote {path}")
     return 0

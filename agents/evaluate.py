@@ -28,6 +28,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym.io import check_out_dir, os_error_message
 from blf_gym.metrics import summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import apply_variations, sample_suite
@@ -73,8 +74,13 @@ def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int |
 
 
 def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
-    """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` model zip."""
+    """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` run folder or its
+    model zip."""
     path = Path(path)
+    if path.is_dir():
+        if not (path / "model.zip").is_file():
+            raise ValueError(f"{path}: no model.zip in this folder; give a blf-train run folder or its model zip")
+        path = path / "model.zip"
     if not path.is_file():
         raise ValueError(f"agent model not found: {path}")
     meta_path = path.with_name("metadata.json")
@@ -138,20 +144,25 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--controllers", nargs="*", default=list(CONTROLLERS), metavar="NAME",
                    help=f"baseline controllers to score (default: {' '.join(CONTROLLERS)}; none with an empty list)")
-    p.add_argument("--agents", nargs="*", default=None, metavar="ZIP",
-                   help="trained agents (model zips from blf-train); default: the shipped ones in agents/pretrained")
+    p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
+                   help="trained agents: blf-train run folders or their model zips (default: the shipped "
+                        "ones in agents/pretrained; none with an empty list)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
-                   help=f"paper presets (default: {' '.join(sorted(PRESETS))})")
-    p.add_argument("--suite-seeds", type=int, default=0,
-                   help="also run the randomized suite with this many held-out seeds")
-    p.add_argument("--scenario-kwargs", type=str, default="{}",
-                   help='JSON of scenario variations, e.g. \'{"payload": 0.15, "force": 20}\'')
-    p.add_argument("--duration", type=float, default=None, help="episode length in s (default 30)")
-    p.add_argument("--threads", type=int, default=None, help="threads for the batched simulations")
-    p.add_argument("--out", type=Path, default=None, help="folder for results.json, results.csv and plots")
-    p.add_argument("--save-traj", action="store_true", help="with --out: also save trajectories (npz)")
-    p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+                   help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
+    p.add_argument("--suite-seeds", type=int, default=0, metavar="N",
+                   help="also run N held-out episodes of the randomized suite (default 0)")
+    p.add_argument("--scenario-kwargs", type=str, default="{}", metavar="JSON",
+                   help='scenario variations applied to every episode, e.g. \'{"payload": 0.15, "force": 20}\' '
+                        "(default: none)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="episode length in s (default 30)")
+    p.add_argument("--threads", type=int, default=None, metavar="T",
+                   help="threads for the batched simulations (default: one per CPU)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="folder for results.json, results.csv and plots (default: none, the table only)")
+    p.add_argument("--save-traj", action="store_true",
+                   help="with --out: also save trajectories as npz (default off)")
+    p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots (default: drawn)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar (default: shown)")
     return p
 
 
@@ -179,7 +190,10 @@ def _table(records: Sequence[dict[str, Any]]) -> str:
 
 
 def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[Path]:
-    """Tracking error with bounds per joint (as the paper's Figures 6 and 10), and torques."""
+    """Tracking error with bounds per joint (as the paper's Figures 6 and 10), and torques.
+
+    Plain agents (the whole torque learned) get a column of their own: their errors are often
+    tens of degrees, and on a shared axis they would flatten the laws' and residuals' curves."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -193,26 +207,35 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
         rows = [(r, trajs[0]) for r, trajs in results if r["scenario"] == sc and trajs and trajs[0].n_samples]
         if not rows:
             continue
+        columns = [("baselines and residual agents", [x for x in rows if x[0]["kind"] != "plain"]),
+                   ("plain agents (own scale)", [x for x in rows if x[0]["kind"] == "plain"])]
+        columns = [c for c in columns if c[1]]
         for kind in ("error", "torque"):
-            fig, axes = plt.subplots(3, 1, figsize=(9, 7), sharex=True)
-            for j, ax in enumerate(axes):
-                for r, tr in rows:
-                    y = np.degrees(tr.e1[:, j]) if kind == "error" else tr.u[:, j]
-                    ax.plot(tr.t, y, lw=0.8, label=r["policy"])
-                if kind == "error":
-                    tr = rows[0][1]
-                    ax.plot(tr.t, np.degrees(tr.k_a[:, j]), "k--", lw=0.8, label="bounds")
-                    ax.plot(tr.t, -np.degrees(tr.k_b[:, j]), "k--", lw=0.8)
-                    # zoom on the steady bounds (they start at 29-34 deg and decay to 1-2 deg)
-                    ax.set_ylim(-3 * np.degrees(tr.k_b[-1, j]), 3 * np.degrees(tr.k_a[-1, j]))
-                    ax.set_ylabel(f"e1_{j + 1} (deg)")
-                else:
-                    ax.set_ylabel(f"u_{j + 1} (N m)")
-                ax.grid(alpha=0.3)
-            axes[0].legend(loc="upper right", fontsize=8, ncol=4)
-            axes[0].set_title(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
-                              + (" (first episode)" if sc == "randomized" else ""))
-            axes[-1].set_xlabel("t (s)")
+            fig, axes = plt.subplots(3, len(columns), figsize=(9 if len(columns) == 1 else 14, 7),
+                                     sharex=True, squeeze=False)
+            for col, (title, members) in enumerate(columns):
+                plain = members[0][0]["kind"] == "plain"
+                for j in range(3):
+                    ax = axes[j, col]
+                    for r, tr in members:
+                        y = np.degrees(tr.e1[:, j]) if kind == "error" else tr.u[:, j]
+                        ax.plot(tr.t, y, lw=0.8, label=r["policy"])
+                    if kind == "error":
+                        tr = members[0][1]
+                        ax.plot(tr.t, np.degrees(tr.k_a[:, j]), "k--", lw=0.8, label="bounds")
+                        ax.plot(tr.t, -np.degrees(tr.k_b[:, j]), "k--", lw=0.8)
+                        if not plain:
+                            # zoom on the steady bounds (they start at 29-34 deg and decay to 1-2 deg)
+                            ax.set_ylim(-3 * np.degrees(tr.k_b[-1, j]), 3 * np.degrees(tr.k_a[-1, j]))
+                        ax.set_ylabel(f"e1_{j + 1} (deg)")
+                    else:
+                        ax.set_ylabel(f"u_{j + 1} (N m)")
+                    ax.grid(alpha=0.3)
+                axes[0, col].legend(loc="upper right", fontsize=8, ncol=4)
+                axes[0, col].set_title(title, fontsize=9)
+                axes[-1, col].set_xlabel("t (s)")
+            fig.suptitle(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
+                         + (" (first episode)" if sc == "randomized" else ""), fontsize=11)
             fig.tight_layout()
             path = out / f"{kind}_{sc}.png"
             with atomic_path(path) as tmp:
@@ -249,7 +272,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.save_traj and args.out is None:
         print("blf-eval: error: --save-traj needs --out DIR", file=sys.stderr)
         return 2
+    try:
+        if args.out is not None:
+            check_out_dir(args.out)  # a file, a read-only folder: said before the run, not after
+        return _run(args, groups, agents)
+    except OSError as exc:
+        print(f"blf-eval: error: {os_error_message(exc, args.out)}", file=sys.stderr)
+        return 2
 
+
+def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list) -> int:
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
     jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
     bar = None

@@ -103,18 +103,6 @@ def _git_commit() -> str | None:
         return None
 
 
-def _latest_checkpoint(ckpt: Path) -> tuple[Path, int] | None:
-    best = None
-    for f in ckpt.glob("model_*_steps.zip"):
-        try:
-            steps = int(f.stem.split("_")[1])
-        except (IndexError, ValueError):
-            continue
-        if best is None or steps > best[1]:
-            best = (f, steps)
-    return best
-
-
 def _make_progress_callback(total: int, start: int, enabled: bool):
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -154,12 +142,27 @@ def _schedule(spec: str, where: str):
     return value
 
 
+class _RunClock:
+    """Wall time that produced the current model: the checkpoint's, plus this segment's."""
+
+    def __init__(self, prior: float = 0.0) -> None:
+        self.prior = float(prior)
+        self.t0 = time.time()
+
+    def segment(self) -> float:
+        return time.time() - self.t0
+
+    def model(self) -> float:
+        return self.prior + self.segment()
+
+
 def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta: dict[str, Any],
-                         suite_seeds: int, start_wall: float):
+                         suite_seeds: int, clock: _RunClock, on_point=None):
     """Learning curves: at the start, every ``every`` agent steps and at the end, score the
     deterministic policy with blf-eval's metrics on both paper presets and ``suite_seeds`` held-out
     randomized-suite episodes, and append the records to ``out/eval/curve.json`` (atomic; kept
-    across ``--resume``)."""
+    across ``--resume``). A point that was due at or before the resume checkpoint but is missing
+    (the process was killed while evaluating it) is evaluated first, so no point is lost."""
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
@@ -172,19 +175,20 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:
-            self._t0 = time.time()
             self.points = json.loads(path.read_text())["points"] if path.is_file() else []
             # after --resume, points past the checkpoint belong to the abandoned stretch
             self.points = [p for p in self.points if p["timesteps"] <= self.num_timesteps]
             self.next_at = (self.num_timesteps // every + 1) * every
-            if not self.points:
-                self._evaluate()  # the untrained policy (for a residual agent, about the law alone)
+            due = (self.num_timesteps // every) * every
+            if not self.points or (self.num_timesteps > 0 and due > self.points[-1]["timesteps"]):
+                # the untrained policy (for a residual agent, about the law alone), or a point a
+                # kill interrupted before it was written
+                self._evaluate()
 
         def _evaluate(self) -> None:
             env = self.model.get_env()
             norm = env if isinstance(env, VecNormalize) else None
-            point: dict[str, Any] = {"timesteps": int(self.num_timesteps),
-                                     "wall_s": round(start_wall + time.time() - self._t0, 1)}
+            point: dict[str, Any] = {"timesteps": int(self.num_timesteps), "wall_s": round(clock.model(), 1)}
             for label, scs in groups:
                 trajs = evaluate_agent(self.model, meta, norm, scs, threads=1)
                 rec = summarize(trajs, meta["name"], meta["mode"], label, scs[0].sim.dt)
@@ -192,6 +196,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
             self.points.append(point)
             atomic_write_json(path, {"env_kwargs": env_kwargs, "suite_seeds": suite_seeds,
                                      "points": self.points})
+            if on_point is not None:
+                on_point()
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next_at:
@@ -207,26 +213,77 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
     return _Curve()
 
 
+def _read_metadata(path: Path) -> dict[str, Any]:
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path} cannot be read as JSON ({exc}); move it away to start a new run") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{path} does not hold a run's metadata (a JSON object)")
+    return meta
+
+
+def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -> dict[str, Any]:
+    """The run's own settings for ``--resume``; an explicit option that contradicts them is refused."""
+    env_kwargs = meta.get("env_kwargs") or {}
+    recorded = {"algo": meta.get("algo"), "mode": meta.get("mode"), "controller": env_kwargs.get("controller"),
+                "scenario": env_kwargs.get("scenario"), "seed": meta.get("seed")}
+    for key, value in given.items():
+        if value is not None and recorded.get(key) is not None and value != recorded[key]:
+            raise ValueError(f"--{key} {value} differs from the run's {recorded[key]!r} ({where}); "
+                             f"--resume continues a run with its own settings, so drop --{key} or "
+                             "choose another --out")
+    return {k: (given[k] if recorded.get(k) is None else recorded[k]) for k in given}
+
+
 def train(
-    algo: str = "ppo",
-    mode: str = "residual",
+    algo: str | None = None,
+    mode: str | None = None,
     controller: str | None = None,
-    scenario: str = "paper-0.1hz",
-    timesteps: int = 100_000,
-    seed: int = 0,
+    scenario: str | None = None,
+    timesteps: int | None = None,
+    seed: int | None = None,
     config: str | Path | None = None,
     out: str | Path = "runs/run",
     resume: bool = False,
     progress: bool = True,
     name: str | None = None,
+    command: str | None = None,
 ) -> Path:
-    """Train (or resume) one agent; returns the run folder. See the module docstring."""
+    """Train (or resume, or extend) one agent; returns the run folder. See the module docstring.
+
+    Defaults: ppo, residual over the proposed law, paper-0.1hz, 100,000 steps, seed 0. With
+    ``resume=True`` the run's own settings (``metadata.json``) are used, ``timesteps`` defaults to
+    the run's requested total, and a larger ``timesteps`` extends a finished run.
+    """
+    out = Path(out)
+    meta_path = out / "metadata.json"
+    ckpt_dir = out / "checkpoints"
+    prior = _read_metadata(meta_path) if meta_path.is_file() else None
+    if not resume and prior is not None:
+        raise ValueError(f"{out} already holds a run; pass --resume to continue it (or --resume --timesteps N "
+                         "to extend it), or choose another --out")
+    if resume and prior is None and not ckpt_dir.is_dir():
+        raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
+    given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed}
+    if resume and prior is not None:
+        given = _resume_settings(prior, given, meta_path)
+        if given["mode"] == "plain":
+            given["controller"] = None
+    algo = given["algo"] or "ppo"
+    mode = given["mode"] or "residual"
+    controller, scenario = given["controller"], given["scenario"] or "paper-0.1hz"
+    seed = 0 if given["seed"] is None else given["seed"]
+    if timesteps is None:
+        timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
     if algo not in ALGOS:
         raise ValueError(f"unknown algo {algo!r}; accepted values: {list(ALGOS)}")
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; accepted values: {list(MODES)}")
-    if timesteps < 1:
-        raise ValueError(f"timesteps must be >= 1, got {timesteps}")
+    if isinstance(timesteps, bool) or not isinstance(timesteps, int) or timesteps < 1:
+        raise ValueError(f"timesteps must be an integer >= 1, got {timesteps!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
     from blf_gym.controller import available_controllers
     from blf_gym.scenarios import resolve_scenario
 
@@ -236,49 +293,75 @@ def train(
     if mode == "residual" and controller not in available_controllers():
         raise ValueError(f"unknown controller {controller!r}; accepted values: {available_controllers()}")
     resolve_scenario(scenario)
-    out = Path(out)
-    if not resume and (out / "metadata.json").exists():
-        raise ValueError(f"{out} already holds a run; pass --resume to continue it, or choose another --out")
-    cfg_path = Path(config) if config else CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
-    cfg = load_config(cfg_path)
+    if resume and prior is not None and isinstance(prior.get("config"), dict):
+        cfg = prior["config"]
+        cfg_path = Path(prior.get("config_file") or "")
+        if config is not None and json.dumps(load_config(config), sort_keys=True) != json.dumps(cfg, sort_keys=True):
+            raise ValueError(f"--config {config} differs from the config this run was trained with "
+                             f"({meta_path}, 'config'); --resume keeps the run's own config")
+    else:
+        cfg_path = Path(config) if config else CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
+        cfg = load_config(cfg_path)
     if cfg.get("normalize_reward") and not cfg.get("normalize"):
         raise ValueError(f"{cfg_path}: normalize_reward needs normalize: true")
     env_kwargs: dict[str, Any] = {"scenario": scenario, **(cfg.get("env") or {})}
     if mode == "residual":
         env_kwargs["controller"] = controller
+    normalize = bool(cfg.get("normalize"))
 
     import torch
-    from stable_baselines3.common.callbacks import CallbackList, CheckpointCallback
+    from stable_baselines3.common.callbacks import CallbackList
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
+    from blf_gym.io import atomic_path
+
+    from .checkpoints import AtomicCheckpointCallback, find_checkpoints, save_checkpoint
     from .vec_env import BLFVecEnv
 
     torch.set_num_threads(1)
     cls = _algo_class(algo)
     n_envs = int(cfg.get("n_envs", 1))
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **env_kwargs))
-    ckpt_dir = out / "checkpoints"
     start_steps = 0
-    t_start = time.time()
-    prior_wall = 0.0
+    prior_model_wall = 0.0
+    model = None
     if resume:
-        latest = _latest_checkpoint(ckpt_dir)
-        if latest is None:
-            raise ValueError(f"--resume: no checkpoint in {ckpt_dir}")
-        ckpt, start_steps = latest
-        if cfg.get("normalize"):
-            stats = ckpt_dir / f"model_vecnormalize_{start_steps}_steps.pkl"
-            venv = VecNormalize.load(str(stats), venv)
-        model = cls.load(ckpt, env=venv, device="cpu")
-        buf = ckpt_dir / f"model_replay_buffer_{start_steps}_steps.pkl"
-        if hasattr(model, "replay_buffer") and buf.is_file():
-            model.load_replay_buffer(buf)
-        meta_old = out / "metadata.json"
-        if meta_old.is_file():
-            prior_wall = float(json.loads(meta_old.read_text()).get("wall_s_at_checkpoint", 0.0))
-    else:
-        if cfg.get("normalize"):
+        found, skipped = find_checkpoints(ckpt_dir, normalize)
+        for s in skipped:
+            print(f"blf-train: skipping incomplete checkpoint {s}", file=sys.stderr)
+        for ck in found:
+            try:
+                env = VecNormalize.load(str(ck.stats), venv) if ck.stats is not None else venv
+                model = cls.load(ck.model, env=env, device="cpu")
+                if ck.buffer is not None and hasattr(model, "replay_buffer"):
+                    model.load_replay_buffer(ck.buffer)
+            except Exception as exc:  # a damaged file SB3 or pickle cannot read: try an older set
+                print(f"blf-train: skipping checkpoint at {ck.steps} steps ({ck.model.parent}): "
+                      f"cannot be loaded ({type(exc).__name__}: {exc})", file=sys.stderr)
+                model = None
+                continue
+            start_steps = ck.steps
+            prior_model_wall = float(ck.state.get("wall_s_to_model", 0.0))
+            print(f"blf-train: resuming {out} from its checkpoint at {start_steps} steps", file=sys.stderr)
+            break
+        for partial in ckpt_dir.glob(".partial_*") if ckpt_dir.is_dir() else []:
+            import shutil
+
+            shutil.rmtree(partial, ignore_errors=True)
+        if model is None:
+            if prior is None:
+                raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
+            print(f"blf-train: no complete checkpoint in {ckpt_dir}; starting {out} again from step 0",
+                  file=sys.stderr)
+        elif start_steps >= timesteps and prior is not None and prior.get("completed") \
+                and (out / "model.zip").is_file():
+            print(f"blf-train: {out} already has {start_steps} steps (requested {timesteps}); nothing to do. "
+                  f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
+            venv.close()
+            return out
+    if model is None:
+        if normalize:
             venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(cfg.get("normalize_reward", False)),
                                 gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
         kwargs = dict(cfg.get("hyperparams") or {})
@@ -301,82 +384,143 @@ def train(
                         verbose=0, **kwargs)
         except TypeError as exc:
             raise ValueError(f"{cfg_path}: a hyperparameter is not accepted by {algo.upper()}: {exc}") from exc
+    continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
+    clock = _RunClock(prior_model_wall)
+
+    # metadata.json is written now and after every checkpoint and curve point, so a killed run keeps
+    # its record; each process's stretch of training is one segment
+    segments = list(prior.get("segments") or []) if (resume and prior) else []
+    if resume and prior and not segments and "wall_s" in prior:  # a run recorded before segments existed
+        segments = [{"start_timesteps": 0, "end_timesteps": int(prior.get("timesteps", 0)),
+                     "wall_s": float(prior["wall_s"]), "status": "completed" if prior.get("completed")
+                     else "interrupted"}]
+    for s in segments:
+        if s.get("status") == "running":
+            s["status"] = "killed"  # its process ended without closing the record
+    segment = {"start_timesteps": start_steps, "end_timesteps": start_steps, "wall_s": 0.0,
+               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running", "command": command}
+    segments.append(segment)
+    meta: dict[str, Any] = {
+        "name": name or (prior or {}).get("name") or out.name,
+        "algo": algo,
+        "mode": mode,
+        "env_id": ENV_IDS[mode],
+        "env_kwargs": dict(env_kwargs),
+        "config_file": str(cfg_path),
+        "config": cfg,
+        "seed": seed,
+        "timesteps": start_steps,
+        "timesteps_requested": timesteps,
+        "status": "running",
+        "completed": False,
+        "resumed": len(segments) > 1,
+        "wall_s": 0.0,
+        "wall_s_to_model": prior_model_wall,
+        "segments": segments,
+        "versions": _versions(),
+        "git_commit": _git_commit(),
+        "command": (prior or {}).get("command") if resume else command,
+        "host": {"cpus": os.cpu_count()},
+    }
+
+    def record(status: str = "running") -> None:
+        segment["end_timesteps"] = int(model.num_timesteps)
+        segment["wall_s"] = round(clock.segment(), 3)
+        segment["status"] = status
+        meta["timesteps"] = int(model.num_timesteps)
+        meta["wall_s"] = round(sum(float(s.get("wall_s", 0.0)) for s in segments), 3)
+        meta["wall_s_to_model"] = round(clock.model(), 3)
+        meta["status"] = status
+        meta["completed"] = status == "completed"
+        atomic_write_json(meta_path, meta)
+
+    record()
     freq = max(1, int(cfg.get("checkpoint_freq", 10_000)) // n_envs)
     callbacks = [
-        CheckpointCallback(freq, str(ckpt_dir), name_prefix="model", save_replay_buffer=True,
-                           save_vecnormalize=bool(cfg.get("normalize"))),
+        AtomicCheckpointCallback(freq, str(ckpt_dir), state=lambda: {"wall_s_to_model": round(clock.model(), 3)},
+                                 on_saved=lambda _folder: record(), name_prefix="model",
+                                 save_replay_buffer=True, save_vecnormalize=normalize),
         _make_curve_callback(int(cfg.get("eval_freq", 20_000)), out, env_kwargs,
-                             {"name": name or out.name, "mode": mode, "env_kwargs": env_kwargs},
-                             int(cfg.get("curve_suite_seeds", 4)), prior_wall),
+                             {"name": meta["name"], "mode": mode, "env_kwargs": env_kwargs},
+                             int(cfg.get("curve_suite_seeds", 4)), clock, on_point=record),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
     remaining = max(0, timesteps - start_steps)
     interrupted = False
     try:
-        model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not resume,
+        model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not continuing,
                     tb_log_name=algo)
     except KeyboardInterrupt:
         interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
               f"--out {out}", file=sys.stderr)
-    wall = prior_wall + time.time() - t_start
-    model.save(out / "model.zip")
-    if isinstance(model.get_env(), VecNormalize):
-        model.get_env().save(str(out / "vecnormalize.pkl"))
-    meta = {
-        "name": name or out.name,
-        "algo": algo,
-        "mode": mode,
-        "env_id": ENV_IDS[mode],
-        "env_kwargs": {k: v for k, v in env_kwargs.items()},
-        "config_file": str(cfg_path),
-        "config": cfg,
-        "seed": seed,
-        "timesteps": int(model.num_timesteps),
-        "timesteps_requested": timesteps,
-        "completed": not interrupted and model.num_timesteps >= timesteps,
-        "wall_s": wall,
-        "wall_s_at_checkpoint": wall,
-        "versions": _versions(),
-        "git_commit": _git_commit(),
-        "command": " ".join(["blf-train", *sys.argv[1:]]) if sys.argv and "blf-train" in sys.argv[0] else None,
-        "host": {"cpus": os.cpu_count()},
-    }
-    atomic_write_json(out / "metadata.json", meta)
+    # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
+    save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
+    norm = model.get_vec_normalize_env()
+    if norm is not None:
+        with atomic_path(out / "vecnormalize.pkl") as tmp:
+            norm.save(str(tmp))
+    with atomic_path(out / "model.zip") as tmp:
+        model.save(tmp)
+    record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
     venv.close()
     return out
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-train", description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    p.add_argument("--algo", default="ppo", choices=ALGOS,
-                   help="SB3 algorithm (tqc needs sb3-contrib; ppo has the tuned residual config)")
-    p.add_argument("--mode", default="residual", choices=MODES,
-                   help="plain: the action is the torque; residual: added to the inner law")
-    p.add_argument("--controller", default=None,
-                   help="inner law in residual mode: bc, lesobc, proposed (default proposed)")
-    p.add_argument("--scenario", default="paper-0.1hz",
-                   help="training scenario: paper-0.1hz, paper-0.5hz or randomized")
-    p.add_argument("--timesteps", type=int, default=100_000, help="total agent steps (10 ms each by default)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--config", default=None, help="YAML hyperparameters (default agents/configs/<algo>_<env id>.yaml)")
-    p.add_argument("--out", default="runs/run", help="run folder")
-    p.add_argument("--name", default=None, help="agent name in results (default: the run folder's name)")
-    p.add_argument("--resume", action="store_true", help="continue from the latest checkpoint in --out")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+                                formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog="With --resume, the run's own algo, mode, controller, scenario, seed and "
+                                       "config are used (an option that contradicts them is refused).")
+    p.add_argument("--algo", default=None, choices=ALGOS,
+                   help="SB3 algorithm (default ppo; tqc needs sb3-contrib; ppo has the tuned residual config)")
+    p.add_argument("--mode", default=None, choices=MODES,
+                   help="plain: the action is the torque; residual: added to the inner law (default residual)")
+    p.add_argument("--controller", default=None, metavar="NAME",
+                   help="inner law in residual mode: bc, lesobc, proposed or a registered plug-in "
+                        "(default proposed)")
+    p.add_argument("--scenario", default=None, metavar="NAME",
+                   help="training scenario: paper-0.1hz, paper-0.5hz or randomized (default paper-0.1hz)")
+    p.add_argument("--timesteps", type=int, default=None, metavar="N",
+                   help="total agent steps, one per control_period (default 100000; with --resume, the "
+                        "run's requested total, and a larger N extends a finished run)")
+    p.add_argument("--seed", type=int, default=None, metavar="S",
+                   help="seed of the networks, the envs and the scenario draws (default 0)")
+    p.add_argument("--config", default=None, metavar="YAML",
+                   help="hyperparameters (default agents/configs/<algo>_<env id>.yaml)")
+    p.add_argument("--out", default="runs/run", metavar="DIR", help="run folder (default runs/run)")
+    p.add_argument("--name", default=None,
+                   help="agent name in results (default: the run folder's name)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its newest complete checkpoint (default off)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar (default: shown)")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    import shlex
+    import signal
+
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    # a scheduler's SIGTERM ends the run like Ctrl-C: a final checkpoint and metadata are written
+    previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
         out = train(args.algo, args.mode, args.controller, args.scenario, args.timesteps, args.seed,
-                    args.config, args.out, args.resume, not args.no_progress, args.name)
+                    args.config, args.out, args.resume, not args.no_progress, args.name,
+                    command=shlex.join(["blf-train", *argv]))
     except ValueError as exc:
         print(f"blf-train: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:
+        print(f"blf-train: error: cannot write {exc.filename or args.out}: {exc.strerror or exc}", file=sys.stderr)
+        return 2
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    meta = json.loads((out / "metadata.json").read_text())
+    if meta.get("status") == "interrupted":
+        return 130
     print(f"blf-train: wrote {out / 'model.zip'} and {out / 'metadata.json'}")
     return 0
 

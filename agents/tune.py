@@ -82,12 +82,18 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("configs", nargs="+", type=Path, help="candidate blf-train config files (YAML)")
     p.add_argument("--algo", default="ppo", help="SB3 algorithm for every candidate (default ppo)")
-    p.add_argument("--mode", default="residual", choices=("plain", "residual"))
-    p.add_argument("--timesteps", type=int, default=300_000, help="budget per run (agent steps)")
-    p.add_argument("--seeds", type=int, nargs="+", default=[0], help="training seeds per candidate")
-    p.add_argument("--scenario", default="randomized", help="training scenario (default: the randomized suite)")
-    p.add_argument("--out", type=Path, default=Path("runs/tune"))
-    p.add_argument("--jobs", type=int, default=1, help="runs trained at the same time (one core each)")
+    p.add_argument("--mode", default="residual", choices=("plain", "residual"),
+                   help="plain: the action is the torque; residual: added to the proposed law (default residual)")
+    p.add_argument("--timesteps", type=int, default=300_000, metavar="N",
+                   help="budget per run, in agent steps (default 300000)")
+    p.add_argument("--seeds", type=int, nargs="+", default=[0], metavar="S",
+                   help="training seeds per candidate (default 0)")
+    p.add_argument("--scenario", default="randomized", metavar="NAME",
+                   help="training scenario (default randomized, the randomized suite)")
+    p.add_argument("--out", type=Path, default=Path("runs/tune"), metavar="DIR",
+                   help="folder for the runs, tune.json and tune.md (default runs/tune)")
+    p.add_argument("--jobs", type=int, default=1, metavar="J",
+                   help="runs trained at the same time, one core each (default 1)")
     return p
 
 

@@ -7,7 +7,12 @@ measured angles, holds its torque over the env's ``control_period`` and must be 
 ``control_period`` equal to the integration step (0.1 ms), e.g.::
 
     env = gym.make("PlanarBLF-v0", control_period=1e-4)
-    policy = BaselinePolicy("proposed")
+    policy = BaselinePolicy("proposed", env=env)
+
+Given ``env=``, the policy refuses an env whose ``control_period`` is not its ``dt``, or that is in
+residual mode, or whose torque limit differs (on the default 10 ms env the held torque breaks the
+bounds within a few steps). Without ``env=`` it cannot check, and warns once at the first
+``predict``.
 
 The inner path (``controller=`` in the env, or ``blf_gym.simulate``) evaluates the same compiled
 law at every ODE3 stage instead; the two agree closely but not exactly (SPEC section 6), and the
@@ -57,6 +62,7 @@ class BaselinePolicy:
         gains: ControllerGains | None = None,
         observer: ObserverGains | None = None,
         bounds: BoundParams | None = None,
+        env: Any = None,
     ) -> None:
         if controller not in _LAWS:
             raise ValueError(f"unknown controller {controller!r}; accepted values: {sorted(_LAWS)}")
@@ -79,6 +85,28 @@ class BaselinePolicy:
         self._xhat: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self._u_prev: np.ndarray | None = None
+        self._checked = False
+        if env is not None:
+            self.check_env(env)
+
+    def check_env(self, env: Any) -> None:
+        """Refuse an env this policy cannot drive: residual mode, a ``control_period`` other than
+        ``dt``, or another torque limit. Accepts a Gymnasium env (wrapped or not) or vector env."""
+        core = getattr(getattr(env, "unwrapped", env), "core", None)
+        if core is None:
+            raise ValueError(f"BaselinePolicy.check_env: {type(env).__name__} is not a PlanarBLF env")
+        if core.residual:
+            raise ValueError("BaselinePolicy drives the plain env (its action is the whole torque); this env is "
+                             f"in residual mode over {core.controller.name!r}. Use gym.make('PlanarBLF-v0', ...)")
+        if not np.isclose(core.control_period, self.dt, rtol=1e-9, atol=0.0):
+            raise ValueError(f"BaselinePolicy integrates its LESO and holds its torque with dt = {self.dt:g} s, but "
+                             f"the env's control_period is {core.control_period:g} s; make the env with "
+                             f"control_period={self.dt:g} (at 10 ms the held torque breaks the bounds within "
+                             "a few steps)")
+        if not np.isclose(core.sim.max_torque, self.max_torque):
+            raise ValueError(f"BaselinePolicy scales its torque by max_torque = {self.max_torque:g} N m, but the env's "
+                             f"is {core.sim.max_torque:g} N m; pass max_torque={core.sim.max_torque:g}")
+        self._checked = True
 
     def reset(self, num_envs: int = 1) -> None:
         self._xhat = None
@@ -135,6 +163,13 @@ class BaselinePolicy:
         deterministic: bool = True,
     ) -> tuple[np.ndarray, Any]:
         """SB3's PolicyPredictor interface: actions in [-1, 1] (torque / max_torque)."""
+        if not self._checked:
+            import warnings
+
+            warnings.warn(f"BaselinePolicy({self.name!r}) was not given env=, so it cannot check that the env's "
+                          f"control_period equals its dt = {self.dt:g} s; at the default 10 ms it breaks the "
+                          "bounds within a few steps. Pass env= (or call check_env(env)).", UserWarning, stacklevel=2)
+            self._checked = True
         obs = np.asarray(observation)
         single = obs.ndim == 1
         batch = obs[None] if single else obs

@@ -21,8 +21,10 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+from blf_gym.io import check_out_dir, os_error_message
 from blf_gym.metrics import summarize, write_results
 from blf_gym.params import PRESETS, preset
+from blf_gym.simulate import divergence_message
 
 __all__ = ["PAPER_RMSE_DEG", "main", "run_cases"]
 
@@ -50,14 +52,16 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"scenario presets to run (default: all of {sorted(PRESETS)})")
     p.add_argument("--controller", nargs="+", default=list(CONTROLLERS), metavar="NAME",
                    help=f"controllers to run (default: all of {list(CONTROLLERS)})")
-    p.add_argument("--dt", type=float, default=None,
+    p.add_argument("--dt", type=float, default=None, metavar="S",
                    help="ODE3 step in seconds (default 1e-4; must divide 1 ms; the paper's 1e-3 diverges)")
-    p.add_argument("--duration", type=float, default=None, help="episode length in seconds (default 30)")
-    p.add_argument("--out", type=Path, default=None,
-                   help="folder for results.json and results.csv (written atomically)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="episode length in seconds (default 30)")
+    p.add_argument("--out", type=Path, default=None, metavar="DIR",
+                   help="folder for results.json and results.csv, written atomically (default: none, "
+                        "the table only)")
     p.add_argument("--save-traj", action="store_true",
-                   help="with --out: also save each trajectory on the 1 ms grid (npz)")
-    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+                   help="with --out: also save each trajectory on the 1 ms grid as npz (default off)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar (default: shown)")
     return p
 
 
@@ -158,7 +162,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.save_traj and args.out is None:
         print("blf-reproduce: error: --save-traj needs --out DIR", file=sys.stderr)
         return 2
+    try:
+        if args.out is not None:
+            check_out_dir(args.out)  # a file, a read-only folder: said before the run, not after
+        return _run(args)
+    except OSError as exc:
+        print(f"blf-reproduce: error: {os_error_message(exc, args.out)}", file=sys.stderr)
+        return 2
 
+
+def _run(args: argparse.Namespace) -> int:
     saved: set[tuple[str, str]] = set()
 
     def save(pairs: list[tuple[dict[str, Any], Any]]) -> None:
@@ -173,9 +186,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                     saved.add(key)
 
     t0 = time.perf_counter()
-    if _first_run(args.controller):
-        print("blf-reproduce: the first run compiles the closed loop (about 15 s per controller, "
-              "cached to disk afterwards)", file=sys.stderr)
     try:
         results = run_cases(args.preset, args.controller, args.dt, args.duration,
                             progress=not args.no_progress, on_done=save)
@@ -188,22 +198,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"\nRMSE in degrees over the 1 ms samples of each {duration:g} s run (up to the divergence "
           f"for a diverged one); paper values from Tables 3-4 of Tran et al. (2020), whose 1 ms step diverges on this "
           f"plant (see README). Wall time {time.perf_counter() - t0:.2f} s.")
+    # one warning per distinct failure (same code and time), naming the cases it covers
+    diverged: dict[tuple, list[tuple[str, str]]] = {}
     for rec, tr in results:
         if tr.diverged:
-            print(f"warning: {rec['scenario']}/{rec['policy']}: {tr.message}", file=sys.stderr)
+            diverged.setdefault((tr.divergence_code, tr.diverged_at, tr.dt), []).append((rec["scenario"], rec["policy"]))
+    for (code, t, dt), cases in diverged.items():
+        laws = sorted({c for _, c in cases})
+        which = (f"all {len(results)} cases" if len(cases) == len(results) else
+                 f"{len(cases)} of {len(results)} cases ({', '.join(f'{s}/{c}' for s, c in cases)})")
+        message = divergence_message(code, t, dt, preset(cases[0][0]).sim.unstable_steps,
+                                     laws[0] if len(laws) == 1 else None)
+        print(f"warning: {which} diverged: {message}", file=sys.stderr)
     if args.out is not None:
         print(f"wrote {args.out / 'results.json'} and {args.out / 'results.csv'}"
               + (f" and {len(saved)} trajectories in {args.out / 'traj'}" if args.save_traj else ""))
+    if results and all(tr.diverged for _, tr in results):
+        print("blf-reproduce: every case diverged; these numbers are not a result", file=sys.stderr)
+        return 1
     return 0
-
-
-def _first_run(controllers: Sequence[str]) -> bool:
-    """True when a kernel still has to be compiled (so the user is told why the wait is long)."""
-    from blf_gym.controller import make_controller, make_observer
-    from blf_gym.simulate import kernel_is_cached
-
-    obs = make_observer("leso").rhs
-    return not all(kernel_is_cached(make_controller(c).law, obs) for c in controllers)
 
 
 if __name__ == "__main__":

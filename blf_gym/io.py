@@ -15,7 +15,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_write_npz"]
+__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_write_npz", "check_out_dir",
+           "os_error_message"]
 
 
 @contextlib.contextmanager
@@ -49,3 +50,34 @@ def atomic_write_json(path: str | os.PathLike, obj: Any) -> None:
 def atomic_write_npz(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
     with atomic_path(path, suffix=".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
+
+
+def os_error_message(exc: OSError, where: str | os.PathLike | None = None) -> str:
+    """One line naming what failed and where, for an OSError a user can fix (disk full, read-only
+    folder, a file where a folder is expected)."""
+    import errno
+
+    path = exc.filename or where
+    reason = exc.strerror or str(exc)
+    hint = {errno.ENOSPC: "free some space or choose another --out",
+            errno.EDQUOT: "free some space or choose another --out",
+            errno.EACCES: "choose a folder you can write to",
+            errno.EPERM: "choose a folder you can write to",
+            errno.EROFS: "the file system is read-only; choose another --out",
+            errno.ENOTDIR: "a file stands where a folder is needed; choose another --out",
+            errno.EEXIST: "a file stands where a folder is needed; choose another --out"}.get(exc.errno, "")
+    return f"cannot write {path}: {reason}" + (f" ({hint})" if hint else "")
+
+
+def check_out_dir(path: str | os.PathLike) -> Path:
+    """Create the output folder ``path`` and check that it can be written to, before a long run.
+
+    Raises OSError (with the path) if it is a file, cannot be created or is not writable."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise NotADirectoryError(20, "it is a file, not a folder", str(path))
+    path.mkdir(parents=True, exist_ok=True)
+    fd, probe = tempfile.mkstemp(prefix=".write-check.", dir=path)
+    os.close(fd)
+    os.unlink(probe)
+    return path

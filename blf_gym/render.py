@@ -1,7 +1,9 @@
 """Drawing of the arm for ``render()``; imported lazily so ``import blf_gym`` stays light.
 
 Left: the arm in its plane, the reference circle, the end-effector path and the current target.
-Right: each joint's error e1 between its bounds (-k_b, k_a), red when outside.
+Right: each joint's error e1 between its bounds (-k_b, k_a), red when outside, on a symmetric
+log scale (linear within +-0.01 deg), so that errors from 0.01 degrees up to the bounds' tens of
+degrees can be read on one axis. The title names the controller, the mode and the scenario.
 """
 
 from __future__ import annotations
@@ -65,7 +67,12 @@ class ArmRenderer:
         ax.set_xlim(-0.2, reach)
         ax.set_ylim(-0.45, 0.45)
         ax.set_aspect("equal")
-        ax.set_title(f"t = {t:.2f} s", fontsize=9)
+        ax.set_xlabel("x (m)", fontsize=8)
+        ax.set_ylabel("y (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ctrl = core.controller.name
+        who = f"residual over {ctrl}" if core.residual else "plain (agent torque)"
+        ax.set_title(f"{sc.name} | {who} | t = {t:.2f} s", fontsize=8)
         ax.legend(loc="lower left", fontsize=7)
         ax2 = self.ax_err
         ax2.clear()
@@ -78,11 +85,17 @@ class ArmRenderer:
         ax2.bar(np.arange(1, n + 1), e, color=colors)
         ax2.axhline(ka, color="k", ls="--", lw=1)
         ax2.axhline(-kb, color="k", ls="--", lw=1)
-        lim = 1.2 * max(ka, kb)
+        lim = 1.5 * max(ka, kb, float(np.max(np.abs(e))))
+        ax2.set_yscale("symlog", linthresh=0.01, linscale=0.5)
         ax2.set_ylim(-lim, lim)
+        ax2.axhline(0.0, color="0.5", lw=0.5)
+        for j, v in enumerate(e):
+            ax2.annotate(f"{v:+.3f}", (j + 1, v), ha="center", va="bottom" if v >= 0 else "top", fontsize=7)
         ax2.set_xticks(np.arange(1, n + 1))
+        ax2.tick_params(labelsize=7)
         ax2.set_xlabel("joint", fontsize=8)
-        ax2.set_ylabel("e1 (deg) within (-k_b, k_a)", fontsize=8)
+        ax2.set_ylabel("e1 (deg), symlog", fontsize=8)
+        ax2.set_title("e1 within (-k_b, k_a), dashed", fontsize=8)
         self.fig.canvas.draw()
         frame = np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()
         if self.human:

@@ -507,9 +507,19 @@ def _source_digest(*modules: types.ModuleType) -> str:
     return h.hexdigest()[:10]
 
 
-def _remove_stale_cache(prefix: str, digest: str) -> None:
+def _cache_dir(dispatcher) -> Path:
+    """Where numba keeps this dispatcher's cache: next to the sources if that folder is writable,
+    otherwise its fallback (``NUMBA_CACHE_DIR`` or the user's cache folder)."""
+    return Path(dispatcher._cache._cache_path)
+
+
+def _is_cached(dispatcher) -> bool:
+    """True if machine code for this dispatcher is in memory or in numba's disk cache."""
+    return bool(dispatcher.signatures) or Path(dispatcher._cache._cache_file._index_path).is_file()
+
+
+def _remove_stale_cache(cache: Path, prefix: str, digest: str) -> None:
     """Delete cache files of older builds of the same kernel (they are never used again)."""
-    cache = Path(__file__).parent / "__pycache__"
     if not cache.is_dir():
         return
     for f in cache.glob(f"simulate.{prefix}*"):
@@ -521,13 +531,17 @@ def _remove_stale_cache(prefix: str, digest: str) -> None:
 
 
 def kernel_is_cached(law, observer_rhs, n: int = 3) -> bool:
-    """True if the kernel for this (law, observer) pair is already compiled on disk."""
+    """True if the kernel for this (law, observer) pair is compiled, in memory or on disk (in the
+    folder numba actually uses, which is not always the one next to the sources)."""
+    return _is_cached(_specialise(law, observer_rhs, n))
+
+
+def compile_notice(controller: str, observer: str, cache: Path) -> None:
+    """Tell the user why the first run waits (printed once per kernel, on standard error)."""
     import sys
 
-    deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
-    tag = f"{_ident(law)}__{_ident(observer_rhs)}__{_source_digest(*deps)}"
-    cache = Path(__file__).parent / "__pycache__"
-    return any(cache.glob(f"simulate.advance__n{n}__{tag}*.nbi"))
+    print(f"blf-gym: compiling the closed loop for {controller} + {observer} (first run only, about 15-50 s; "
+          f"cached in {cache})", file=sys.stderr, flush=True)
 
 
 def _clone(template, name: str, bindings: dict, **jit_options):
@@ -541,6 +555,7 @@ def _clone(template, name: str, bindings: dict, **jit_options):
 
 
 _KERNELS: dict[tuple, object] = {}
+_NOTICED: set = set()
 
 
 def _ident(fn) -> str:
@@ -557,14 +572,15 @@ def _specialise(law, observer_rhs, n: int):
         digest = _source_digest(*deps)
         pair = f"{_ident(law)}__{_ident(observer_rhs)}"
         tag = f"{pair}__{digest}"
-        _remove_stale_cache(f"stage__n{n}__{pair}__", digest)
-        _remove_stale_cache(f"advance__n{n}__{pair}__", digest)
         stage = _clone(_stage_template, f"stage__n{n}__{tag}", {"_law": law, "_observer": observer_rhs, "_N": n},
                        inline="always")
         kernel = _clone(
             _advance_template, f"advance__n{n}__{tag}",
             {"_stage": stage, "_N": n}, nogil=True, _nrt=False,
         )
+        cache = _cache_dir(kernel)
+        _remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
+        _remove_stale_cache(cache, f"advance__n{n}__{pair}__", digest)
         _KERNELS[key] = kernel
     return _KERNELS[key]
 
@@ -597,6 +613,8 @@ class Trajectory:
     """Integration steps whose end state broke a bound (finer than the 1 ms samples)."""
     first_violation_step_time: float | None = None
     saturated_steps: int = 0
+    divergence_code: int = 0
+    """0 healthy, 1 non-finite or beyond SimParams.divergence_limit, 2 numerically unstable."""
     wall_s: float = 0.0
     message: str = ""
 
@@ -665,6 +683,9 @@ class ClosedLoop:
         self.threads = int(threads)
         self._pool = None
         self._kernel = _specialise(self.controller.law, self.observer.rhs, self.n)
+        if not _is_cached(self._kernel) and self._kernel not in _NOTICED:
+            _NOTICED.add(self._kernel)
+            compile_notice(self.controller.name, self.observer.name, _cache_dir(self._kernel))
         self.N = len(scenarios)
         self.X = np.zeros((self.N, 5 * self.n))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
@@ -791,28 +812,33 @@ class ClosedLoop:
         return rec, nrec, status
 
 
-def divergence_message(code: int, t: float, dt: float, unstable_steps: int = 100) -> str:
+def divergence_message(code: int, t: float, dt: float, unstable_steps: int = 100,
+                       controller: str | None = None) -> str:
     """Human-readable reason for a kernel divergence code (status column ``diverged``).
 
-    For code 2 the run is stopped ``unstable_steps`` steps after the instability began; the
-    message gives both times."""
+    ``controller`` is the inner law's name, ``"none"`` in plain mode (the agent's action is the
+    whole torque), or None when unknown; it selects the likely cause named in the message. For
+    code 2 the run is stopped ``unstable_steps`` steps after the instability began; the message
+    gives both times."""
+    if code not in (1, 2):
+        return ""
+    if controller == "none":
+        cause = ("With no inner law, the actions are the likely cause: they spin the arm up to extreme "
+                 "speeds (plain mode, termination off).")
+    else:
+        law = f"the {controller} law's" if controller else "the controller's"
+        cause = (f"The likely cause is the step: dt = {dt:g} s is too large for {law} gains (the paper's "
+                 f"gains need dt <= 1.5e-4 s; the default is 1e-4 s).")
     if code == 1:
-        return (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
-                f"SimParams.divergence_limit. Either the step dt = {dt} s is too large for the "
-                f"controller's gains, or the applied torques (e.g. large plain-mode actions with "
-                f"termination off) or the plant parameters drive the arm to extreme speeds; the "
-                f"signals up to that time are kept.")
-    if code == 2:
+        what = (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
+                f"SimParams.divergence_limit.")
+    else:
         onset = max(0.0, t - unstable_steps * dt)
-        return (f"simulation diverged numerically (unstable from t = {onset:.6f} s, stopped at "
-                f"t = {t:.6f} s): ODE3's embedded error estimate "
-                f"stayed above tolerance for SimParams.unstable_steps consecutive steps, so dt = "
-                f"{dt} s is outside the integrator's stability region for this closed loop (the "
-                f"actuator limit kept the state finite, but the numbers are meaningless). With a "
-                f"controller, use a smaller dt (0.1 ms for the paper's gains); in plain mode, the "
-                f"actions may be spinning the arm up to extreme speeds. The signals up to that "
-                f"time are kept.")
-    return ""
+        what = (f"simulation diverged numerically (unstable from t = {onset:.6f} s, stopped at t = {t:.6f} s): "
+                f"ODE3's error estimate stayed above tolerance for {unstable_steps} consecutive steps, so "
+                f"the step is outside the integrator's stability region; the torque limit kept the state "
+                f"finite, but the numbers are meaningless.")
+    return f"{what} {cause} The signals up to that time are kept."
 
 
 def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec: int,
@@ -824,13 +850,13 @@ def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec:
     diverged = code != 0
     steps = int(status[ST_STEPS])
     fv = int(status[ST_FIRST_VIOL])
-    msg = divergence_message(code, steps * dt, dt, sc.sim.unstable_steps)
+    msg = divergence_message(code, steps * dt, dt, sc.sim.unstable_steps, controller)
     return Trajectory(
         scenario=sc.name, controller=controller, dt=dt, signals=signals, diverged=diverged,
         diverged_at=steps * dt if diverged else None,
         step_violations=int(status[ST_VIOL_STEPS]),
         first_violation_step_time=None if fv < 0 else fv * dt,
-        saturated_steps=int(status[ST_SAT_STEPS]), wall_s=wall, message=msg,
+        saturated_steps=int(status[ST_SAT_STEPS]), divergence_code=code, wall_s=wall, message=msg,
     )
 
 

@@ -57,7 +57,7 @@ def test_tiny_training_through_the_cli(tmp_path, algo, mode):
     assert (meta["env_kwargs"].get("controller") == "proposed") == (mode == "residual")
     assert (out / "model.zip").is_file() and (out / "vecnormalize.pkl").is_file()
     assert any((out / "tb").rglob("events.out.tfevents*"))
-    assert any((out / "checkpoints").glob("model_*_steps.zip"))
+    assert any((out / "checkpoints").glob("step_*/model.zip"))
 
 
 def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
@@ -75,14 +75,14 @@ def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
                        "--resume", "--no-progress"]) == 0
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["timesteps"] == 400 and meta["completed"]
-    steps = sorted(int(f.stem.split("_")[1]) for f in (out / "checkpoints").glob("model_*_steps.zip"))
+    steps = sorted(int(f.name.split("_")[1]) for f in (out / "checkpoints").glob("step_*"))
     assert steps[-1] == 400 and 300 in steps  # saved after the resume point, not from zero
     # the learning curve continues from the checkpoint (the stretch past it is dropped): one point
     # per step count, in order
     curve = [p["timesteps"] for p in json.loads(cpath.read_text())["points"]]
     assert curve == sorted(set(curve)) and curve[0] == 0 and curve[-1] == 400 and 250 not in curve
     model, meta, norm = load_agent(out / "model.zip")
-    model.load_replay_buffer(out / "checkpoints" / "model_replay_buffer_400_steps.pkl")
+    model.load_replay_buffer(out / "checkpoints" / "step_400" / "replay_buffer.pkl")
     # a row per vector step of the 2 envs: 400 steps = 200 rows if the resumed run kept the first
     # 100 rows, 100 if it had started from an empty buffer. SB3 stores a step's transition after
     # the checkpoint callback has run, so each checkpoint is one row short (198).
@@ -189,7 +189,7 @@ def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
                              "--config", cfg, "--out", str(out), "--no-progress"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
-    while time.time() < deadline and not list((out / "checkpoints").glob("model_*_steps.zip")):
+    while time.time() < deadline and not list((out / "checkpoints").glob("step_*")):
         time.sleep(0.5)
     time.sleep(1.0)
     proc.send_signal(signal.SIGINT)
@@ -197,7 +197,9 @@ def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
     assert "interrupted" in err
     meta = json.loads((out / "metadata.json").read_text())
     assert not meta["completed"]  # the model and metadata of an interrupted run are still written
-    ckpts = sorted(int(f.stem.split("_")[1]) for f in (out / "checkpoints").glob("model_*_steps.zip"))
+    assert meta["status"] == "interrupted" and proc.returncode == 130
+    ckpts = sorted(int(f.name.split("_")[1]) for f in (out / "checkpoints").glob("step_*"))
+    assert ckpts[-1] == meta["timesteps"]  # the run ended on a checkpoint of where it stopped
     target = ckpts[-1] + 200
     assert train_main(["--algo", "sac", "--timesteps", str(target), "--config", cfg, "--out", str(out),
                        "--resume", "--no-progress"]) == 0

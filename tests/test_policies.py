@@ -16,7 +16,7 @@ from blf_gym.simulate import simulate
 def _policy_run(name: str, scenario: str, duration: float):
     env = gym.make("PlanarBLF-v0", scenario=scenario, control_period=1e-4, duration=duration,
                    record=True, terminate_on_violation=False, privileged=(name == "bc"))
-    pol = BaselinePolicy(name)
+    pol = BaselinePolicy(name, env=env)
     obs, _ = env.reset(seed=0)
     done = False
     while not done:
@@ -49,14 +49,31 @@ def test_bc_needs_the_privileged_velocity():
     env = gym.make("PlanarBLF-v0", control_period=1e-4, duration=0.01)
     obs, _ = env.reset(seed=0)
     with pytest.raises(ValueError, match="privileged"):
-        BaselinePolicy("bc").predict(obs)
+        BaselinePolicy("bc", env=env).predict(obs)
 
 
 def test_bad_arguments():
     with pytest.raises(ValueError, match="unknown controller"):
         BaselinePolicy("pid")
-    with pytest.raises(ValueError, match="shape"):
+    with pytest.raises(ValueError, match="shape"), pytest.warns(UserWarning, match="env="):
         BaselinePolicy("proposed").predict(np.zeros(5, dtype=np.float32))
+
+
+def test_the_wrong_env_is_refused_and_an_unchecked_one_warned_about():
+    # on the default 10 ms env the held torque of a 0.1 ms law breaks the bounds within a few steps
+    # (measured: step 4), so the policy refuses it instead of failing silently
+    with pytest.raises(ValueError, match="control_period=0.0001"):
+        BaselinePolicy("proposed", env=gym.make("PlanarBLF-v0"))
+    with pytest.raises(ValueError, match="residual mode"):
+        BaselinePolicy("proposed", env=gym.make("PlanarBLFResidual-v0", control_period=1e-4))
+    with pytest.raises(ValueError, match="max_torque=100"):
+        BaselinePolicy("proposed", env=gym.make("PlanarBLF-v0", control_period=1e-4, max_torque=100.0))
+    env = gym.make("PlanarBLF-v0", control_period=1e-4, duration=0.01)
+    BaselinePolicy("proposed", env=env)  # the right one is accepted (through the wrappers)
+    obs, _ = env.reset(seed=0)
+    pol = BaselinePolicy("proposed")
+    with pytest.warns(UserWarning, match="cannot check"):
+        pol.predict(obs)
 
 
 def test_sb3_evaluate_policy_accepts_a_baseline_policy():
@@ -64,6 +81,6 @@ def test_sb3_evaluate_policy_accepts_a_baseline_policy():
     from stable_baselines3.common.monitor import Monitor
 
     env = Monitor(gym.make("PlanarBLF-v0", control_period=1e-4, duration=0.05))
-    mean, std = evaluate_policy(BaselinePolicy("proposed"), env, n_eval_episodes=2)
+    mean, std = evaluate_policy(BaselinePolicy("proposed", env=env), env, n_eval_episodes=2)
     # 500 steps inside the bounds, each earning at most alive = 1.01 and at least 0
     assert 0.0 <= mean <= 500 * 1.01 and std == pytest.approx(0.0, abs=1e-9)
