@@ -250,8 +250,18 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
 
 
 def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
-                      noise, terminate, rec, nrec, status, last, scratch, sums):
+                      noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
+
+    Instability check (docs/model.md, "Integration"): a step's embedded Bogacki-Shampine error
+    estimate needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement
+    noise sample, residual). Without noise it is checked at every step, and that evaluation is
+    reused as the next step's first one when the inputs stay the same (first-same-as-last); at
+    the last step of a call it is evaluated anyway, since the next call may bring new inputs. With
+    noise, whose sample changes every step, it is evaluated at every step ending a 1 ms sample
+    period (global step index, so every path checks the same steps) and counts for that many
+    steps. ``unstable_run[b]`` carries the count of consecutive unstable steps across calls, so the
+    verdict does not depend on how a run is cut into calls.
 
     Stops an arm early on divergence (state restored to the last finite one) or, when
     ``terminate``, right after the first step whose end state violates a bound. Records the
@@ -272,7 +282,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         K0 = _fixed(w, 0, nx)
         K1 = _fixed(w, nx, nx)
         K2 = _fixed(w, 2 * nx, nx)
-        o = 3 * nx
+        K3 = _fixed(w, 3 * nx, nx)
+        o = 4 * nx
         xs = _fixed(w, o, nx)
         xn = _fixed(w, o + nx, nx)
         ep = _fixed(w, o + 2 * nx, nx)
@@ -322,7 +333,14 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         err_atol = plant_b[2 * n + 1 + _ERR_ATOL]
         unstable_steps = plant_b[2 * n + 1 + _UNSTABLE_STEPS]
         err_max = 0.0
-        err_run = 0
+        err_run = unstable_run[b]
+        # a noisy arm's measurement changes every step: its check runs once per sample period
+        noisy = False
+        if has_noise:
+            for j in range(n_steps):
+                for i in range(n):
+                    if noise[b, j, i] != 0.0:
+                        noisy = True
         umax = plant_b[2 * n + 1 + _UMAX]
         sum_en2 = 0.0
         sum_un2 = 0.0
@@ -337,15 +355,19 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         diverged = 0
         sat_steps = 0
         stopped = False
+        have_k0 = False
         for j in range(n_steps):
             k = k0 + j
             t = k * dt
             for i in range(n):
                 nz[i] = noise[b, j, i] if has_noise else 0.0
+            check = (not noisy) or ((k + 1) % sps == 0)
             halt = False
-            # the three Bogacki-Shampine stages share one call site, so the inlined stage (law and
-            # observer included) is compiled once
-            for st in range(3):
+            committed = False
+            # the stages share one call site, so the inlined stage (law and observer included) is
+            # compiled once: 0, 1, 2 are the step's Bogacki-Shampine stages, 3 the check's
+            # evaluation at the new state
+            for st in range(4):
                 if st == 0:
                     ts = t
                     kst = K0
@@ -356,35 +378,53 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     kst = K1
                     for i in range(nx):
                         xs[i] = x[i] + 0.5 * dt * K0[i]
-                else:
+                elif st == 2:
                     ts = t + 0.75 * dt
                     kst = K2
                     for i in range(nx):
                         xs[i] = x[i] + 0.75 * dt * K1[i]
-                _stage(ts, xs, nz, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
-                       ref, bnd, ulaw, u, hu, satf, kst, pw, Mp, Lp, model, wl, wo)
-                if st > 0:
-                    continue
-                if j > 0:
-                    # Embedded second-order error estimate of the previous step (Bogacki-Shampine,
-                    # first-same-as-last: this stage is that step's fourth evaluation). It grows
-                    # without bound when h is outside ODE3's stability region, even when the
-                    # actuator limit keeps the state finite.
+                else:
+                    ok = True
+                    for i in range(nx):
+                        ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
+                        v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
+                        if not (abs(v) <= divlim):  # also catches NaN
+                            ok = False
+                        xn[i] = v
+                    if not ok:
+                        diverged = 1
+                        halt = True
+                        break
+                    committed = True
+                    if not check:
+                        break
+                    ts = (k + 1) * dt  # the next step's time exactly as its stage 0 computes it
+                    kst = K3
+                    for i in range(nx):
+                        xs[i] = xn[i]
+                if not (st == 0 and have_k0):
+                    _stage(ts, xs, nz, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
+                           ref, bnd, ulaw, u, hu, satf, kst, pw, Mp, Lp, model, wl, wo)
+                if st == 3:
+                    # Embedded second-order error estimate of this step. It grows without bound
+                    # when h is outside ODE3's stability region, even when the actuator limit
+                    # keeps the state finite.
                     en = 0.0
                     for i in range(nx):
-                        e = abs(dt * (ep[i] - 0.125 * K0[i])) / (err_atol + err_rtol * abs(x[i]))
+                        e = abs(dt * (ep[i] - 0.125 * K3[i])) / (err_atol + err_rtol * abs(xn[i]))
                         if e > en:
                             en = e
                     if en > err_max:
                         err_max = en
                     if en > 1.0:
-                        err_run += 1
+                        err_run += 1 if not noisy else sps
                         if err_run >= unstable_steps:
                             diverged = 2
-                            halt = True
-                            break
                     else:
                         err_run = 0
+                    continue
+                if st > 0:
+                    continue
                 # bookkeeping at the step's start time t (state x): constraint check of the state
                 # the previous step produced, saturation, the 1 ms record, the last torques
                 if j > 0 and _violates(x, ref, bnd, n):
@@ -433,23 +473,19 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     last[b, i] = u[i]
                     last[b, n + i] = ulaw[i]
                     last[b, 2 * n + i] = satf[i]
-            if halt:
+            if committed:
+                for i in range(nx):
+                    x[i] = xn[i]
+                steps += 1
+            if halt or diverged:
                 stopped = True
                 break
-            ok = True
-            for i in range(nx):
-                ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
-                v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
-                if not (abs(v) <= divlim):  # also catches NaN
-                    ok = False
-                xn[i] = v
-            if not ok:
-                diverged = 1
-                stopped = True
-                break
-            for i in range(nx):
-                x[i] = xn[i]
-            steps += 1
+            # first-same-as-last: the check's evaluation is the next step's first one when the
+            # inputs are the same (no noise, and the residual is held for the whole call)
+            have_k0 = check and not noisy and j + 1 < n_steps
+            if have_k0:
+                for i in range(nx):
+                    K0[i] = K3[i]
         if x3_pending:
             _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nom_b, x3, Mp, Lp, pw)
             for i in range(n):
@@ -463,6 +499,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 if first_viol < 0:
                     first_viol = k0 + steps
         ksteps[b] = k0 + steps
+        unstable_run[b] = err_run
         status[b, 0] = steps
         status[b, 1] = diverged
         status[b, 2] = viol
@@ -478,7 +515,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
 def scratch_length(n: int) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
     nx = 5 * n
-    return (6 * nx + 5 * n + 6 + 5 * n + 2 * n * n + model_length(n)
+    return (7 * nx + 5 * n + 6 + 5 * n + 2 * n * n + model_length(n)
             + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
 
 
@@ -689,6 +726,9 @@ class ClosedLoop:
         self.N = len(scenarios)
         self.X = np.zeros((self.N, 5 * self.n))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
+        self.unstable_run = np.zeros(self.N, dtype=np.int64)
+        """Per arm, the consecutive integration steps the instability check has failed so far
+        (carried across calls, reset with the arm)."""
         self.last = np.zeros((self.N, 5 * self.n))
         self._scratch = np.zeros((self.N, scratch_length(self.n)))
         self._zeros_residual = np.zeros((self.N, self.n))
@@ -734,6 +774,7 @@ class ClosedLoop:
         self.X[i, :n] = q0
         self.X[i, 2 * n :] = self.observer.initial(q0.copy())
         self.ksteps[i] = 0
+        self.unstable_run[i] = 0
         self.last[i] = 0.0
 
     @property
@@ -785,17 +826,17 @@ class ClosedLoop:
         if self.threads <= 1 or N == 1:
             self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
                          b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, res, nz, bool(terminate), rec,
-                         nrec, status, self.last, self._scratch, sums)
+                         nrec, status, self.last, self._scratch, sums, self.unstable_run)
             self.sums = sums
             return rec, nrec, status
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
-                  res, nz, rec, nrec, status, self.last, self._scratch, sums)
+                  res, nz, rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
 
         def run(lo: int, hi: int) -> None:
             a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
             self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
                          a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], bool(terminate),
-                         a[10], a[11], a[12], a[13], a[14], a[15])
+                         a[10], a[11], a[12], a[13], a[14], a[15], a[16])
 
         # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and write
         # into views of the shared arrays. Each arm's arithmetic is the same as alone.

@@ -1,0 +1,107 @@
+"""Speed of two source trees, measured back to back and interleaved (A B A B ...).
+
+This machine's speed drifts by several per cent between runs, so a change is judged against the
+previous commit in the same session: each round runs one short measurement of each tree in its
+own process (``PYTHONPATH`` points at the tree), alternating, and the medians over rounds are
+compared. Three figures, each the median within its process:
+
+* ``step_us``: one closed-loop step (plant + LESO + proposed law, ODE3 at 0.1 ms), amortised over
+  a 30 s run in one compiled call;
+* ``env_us``: the residual ``env.step`` through ``gym.make`` (100 integration steps);
+* ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads.
+
+Run:  python benchmarks/compare.py BASE_TREE NEW_TREE [--rounds 5]
+e.g.  git worktree add /tmp/base HEAD~1 && python benchmarks/compare.py /tmp/base .
+
+Each tree compiles its own kernels on first use (numba's cache lives next to its sources); a
+warm-up round that is not counted does that.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+from pathlib import Path
+
+_PROBE = r"""
+import json, statistics, time, sys
+import numpy as np
+import gymnasium as gym
+import blf_gym
+from blf_gym.params import preset
+from blf_gym.simulate import ClosedLoop
+
+sc = preset("paper-0.1hz")
+loop = ClosedLoop([sc], "proposed", threads=1)
+loop.advance(10)
+steps = []
+for _ in range(3):
+    loop.set_scenarios([sc])
+    t0 = time.perf_counter()
+    loop.advance(sc.sim.n_steps, record_samples=sc.sim.n_samples)
+    steps.append((time.perf_counter() - t0) / sc.sim.n_steps * 1e6)
+
+env = gym.make("PlanarBLFResidual-v0")
+env.reset(seed=0)
+a = np.zeros(3, dtype=np.float32)
+for _ in range(20):
+    env.step(a)
+env.reset(seed=0)
+ts = []
+for _ in range(1500):
+    t0 = time.perf_counter()
+    _, _, te, tr, _ = env.step(a)
+    ts.append(time.perf_counter() - t0)
+    if te or tr:
+        env.reset()
+
+venv = gym.make_vec("PlanarBLFResidual-v0", num_envs=64, threads=2)
+venv.reset(seed=0)
+A = np.zeros((64, 3), dtype=np.float32)
+for _ in range(3):
+    venv.step(A)
+vs = []
+for _ in range(40):
+    t0 = time.perf_counter()
+    venv.step(A)
+    vs.append(time.perf_counter() - t0)
+print(json.dumps({"step_us": statistics.median(steps), "env_us": statistics.median(ts) * 1e6,
+                  "vec64": 64 / statistics.median(vs)}))
+"""
+
+
+def _measure(tree: Path) -> dict[str, float]:
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    out = subprocess.run([sys.executable, "-c", _PROBE], env=env, check=True, capture_output=True, text=True,
+                         cwd=tree)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("base", type=Path, help="the reference tree (e.g. a worktree of the previous commit)")
+    ap.add_argument("new", type=Path, help="the tree under test")
+    ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds counted (default 5)")
+    args = ap.parse_args()
+    trees = {"base": args.base.resolve(), "new": args.new.resolve()}
+    for t in trees.values():
+        _measure(t)  # warm-up: compile or load the kernels
+    runs: dict[str, list[dict[str, float]]] = {"base": [], "new": []}
+    for r in range(args.rounds):
+        for name in ("base", "new") if r % 2 == 0 else ("new", "base"):
+            runs[name].append(_measure(trees[name]))
+            print(f"round {r + 1} {name}: " + ", ".join(f"{k} {v:.3f}" for k, v in runs[name][-1].items()),
+                  flush=True)
+    print(f"\nmedians of {args.rounds} interleaved rounds (lower is better for us, higher for /s):")
+    for key, unit, better in (("step_us", "us", "lower"), ("env_us", "us", "lower"), ("vec64", "/s", "higher")):
+        b = statistics.median(x[key] for x in runs["base"])
+        n = statistics.median(x[key] for x in runs["new"])
+        print(f"  {key:<8} base {b:10.3f} {unit}   new {n:10.3f} {unit}   new/base {n / b:.3f} ({better} is better)")
+
+
+if __name__ == "__main__":
+    main()
