@@ -1,5 +1,16 @@
-"""agents: residual set-up, training and evaluation of Stable-Baselines3 agents.
+"""agents: training, evaluation and sweeps of Stable-Baselines3 agents on PlanarBLF.
 
-Stub for now: the training (``blf-train``) and evaluation (``blf-eval``) commands arrive with the
-agents issue. It is the only package allowed to import torch and stable-baselines3.
+The only package allowed to import torch and stable-baselines3 (lazily: importing ``agents``
+itself stays light). ``agents.load_agent`` is the one loader of a trained agent.
 """
+
+
+def load_agent(path):
+    """(SB3 model, metadata, VecNormalize statistics or None) of a trained agent (see
+    :func:`agents.loading.load_agent`)."""
+    from .loading import load_agent as _load
+
+    return _load(path)
+
+
+__all__ = ["load_agent"]

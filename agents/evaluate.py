@@ -33,6 +33,8 @@ from blf_gym.metrics import summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import apply_variations, sample_suite
 
+from .loading import load_agent  # the one agent loader, re-exported here
+
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "build_scenarios", "load_agent"]
 
 CONTROLLERS = ("bc", "lesobc", "proposed")
@@ -41,10 +43,32 @@ EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
 
 
+SUITES = ("randomized", "stress")
+"""The scenario suites: the training suite (its held-out seeds) and the stress suite (never trained
+or selected on)."""
+
+
+def suite_seed_offset(suite: str) -> int:
+    """First scenario seed of a suite's evaluation episodes (``EVAL_SEED_OFFSET`` for the training
+    suite's held-out seeds, ``blf_gym.scenarios.STRESS_SEED_OFFSET`` for the stress suite)."""
+    if suite == "stress":
+        from blf_gym.scenarios import STRESS_SEED_OFFSET
+
+        return STRESS_SEED_OFFSET
+    if suite == "randomized":
+        return EVAL_SEED_OFFSET
+    raise ValueError(f"unknown suite {suite!r}; accepted values: {list(SUITES)}")
+
+
 def build_scenarios(
-    presets: Sequence[str], suite_seeds: int, kwargs: dict[str, Any], duration: float | None
+    presets: Sequence[str], suite_seeds: int, kwargs: dict[str, Any], duration: float | None,
+    suite: str = "randomized",
 ) -> list[tuple[str, list[Scenario]]]:
-    """[(scenario label, episodes)]: each preset is one episode; the suite has ``suite_seeds``."""
+    """[(scenario label, episodes)]: each preset is one episode; the suite has ``suite_seeds``.
+
+    With variations (``kwargs``) every label gains ``+custom``, so a varied result is never
+    mistaken for the plain one; the variations themselves are recorded in each record's
+    provenance by blf-eval."""
     groups: list[tuple[str, list[Scenario]]] = []
     sim_over = {"duration": duration} if duration is not None else {}
     for name in presets:
@@ -55,13 +79,18 @@ def build_scenarios(
             sc = replace(apply_variations(sc, kwargs), name=f"{name}+custom")
         groups.append((sc.name, [sc]))
     if suite_seeds > 0:
+        offset = suite_seed_offset(suite)
+        if suite == "stress":
+            from blf_gym.scenarios import sample_stress as sample
+        else:
+            sample = sample_suite
         eps = []
         for k in range(suite_seeds):
-            sc = sample_suite(np.random.default_rng(EVAL_SEED_OFFSET + k), preset("paper-0.1hz", **sim_over))
+            sc = sample(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over))
             if kwargs:
                 sc = apply_variations(sc, kwargs)
             eps.append(sc)
-        groups.append(("randomized", eps))
+        groups.append((suite + ("+custom" if kwargs else ""), eps))
     return groups
 
 
@@ -71,48 +100,6 @@ def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int |
 
     return simulate_batch(scenarios, name, noise_seeds=[EVAL_SEED_OFFSET + i for i in range(len(scenarios))],
                           threads=threads)
-
-
-def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
-    """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` run folder or its
-    model zip."""
-    path = Path(path)
-    if path.is_dir():
-        if not (path / "model.zip").is_file():
-            raise ValueError(f"{path}: no model.zip in this folder; give a blf-train run folder or its model zip")
-        path = path / "model.zip"
-    if not path.is_file():
-        raise ValueError(f"agent model not found: {path}")
-    meta_path = path.with_name("metadata.json")
-    if not meta_path.is_file():
-        raise ValueError(f"{path}: no metadata.json beside the model; was it written by blf-train?")
-    meta = json.loads(meta_path.read_text())
-    for key in ("algo", "mode", "env_kwargs"):
-        if key not in meta:
-            raise ValueError(f"{meta_path}: metadata lacks {key!r}")
-    import stable_baselines3 as sb3
-
-    algos = {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3}
-    try:
-        from sb3_contrib import TQC
-
-        algos["tqc"] = TQC
-    except ImportError:
-        pass
-    if meta["algo"] not in algos:
-        raise ValueError(f"{path}: unknown algorithm {meta['algo']!r} in metadata; known: {sorted(algos)}")
-    try:
-        model = algos[meta["algo"]].load(path, device="cpu")
-    except Exception as exc:  # SB3 raises several types for a corrupt or foreign zip
-        raise ValueError(f"{path}: cannot be loaded as a {meta['algo'].upper()} model ({exc})") from exc
-    norm = None
-    stats = path.with_name("vecnormalize.pkl")
-    if stats.is_file():
-        import pickle
-
-        with open(stats, "rb") as f:
-            norm = pickle.load(f)
-    return model, meta, norm
 
 
 def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
@@ -139,6 +126,32 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     return [core.trajectory(i) for i in range(len(scenarios))]
 
 
+class _ZeroResidual:
+    """The proposed law alone, as an 'agent' on the env path: a zero residual."""
+
+    def __init__(self, n: int = 3) -> None:
+        self.n = n
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True):
+        return np.zeros((obs.shape[0], self.n), dtype=np.float32), None
+
+
+def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = None,
+                  threads: int | None = None):
+    """The proposed law's trajectories on the same episodes and noise as a policy's.
+
+    For a baseline (``meta`` None) that is the inner path with the same noise seeds. For an agent
+    it is the env path with a zero residual over the proposed law, the agent's control period and
+    the same per-episode generators, so that the measurement noise sequence is the agent's."""
+    if meta is None:
+        return evaluate_controller("proposed", scenarios, threads)
+    kw = dict(meta["env_kwargs"])
+    kw["controller"] = "proposed"
+    for k in ("privileged", "residual_filter"):
+        kw.pop(k, None)
+    return evaluate_agent(_ZeroResidual(), {"mode": "residual", "env_kwargs": kw}, None, scenarios, threads)
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -149,8 +162,11 @@ def _parser() -> argparse.ArgumentParser:
                         "ones in agents/pretrained; none with an empty list)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
+    p.add_argument("--suite", default="randomized", choices=SUITES,
+                   help="which suite --suite-seeds draws from: the training suite's held-out seeds, or the "
+                        "stress suite beyond the training ranges (default randomized)")
     p.add_argument("--suite-seeds", type=int, default=0, metavar="N",
-                   help="also run N held-out episodes of the randomized suite (default 0)")
+                   help="also run N episodes of --suite (default 0)")
     p.add_argument("--scenario-kwargs", type=str, default="{}", metavar="JSON",
                    help='scenario variations applied to every episode, e.g. \'{"payload": 0.15, "force": 20}\' '
                         "(default: none)")
@@ -166,9 +182,18 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _law_rmse(records: Sequence[dict[str, Any]], r: dict[str, Any]) -> list[float] | None:
+    """The proposed law's pooled RMSE on the record's scenario group, if it was scored."""
+    for x in records:
+        if x["policy"] == "proposed" and x["kind"] == "baseline" and x["scenario"] == r["scenario"]:
+            return x["rmse_deg"] if all(v is not None for v in x["rmse_deg"]) else None
+    return None
+
+
 def _table(records: Sequence[dict[str, Any]]) -> str:
     head = (f"{'policy':<16} {'kind':<8} {'scenario':<14} {'ep':>3} | {'RMSE j1':>8} {'j2':>8} {'j3':>8} | "
-            f"{'viol':>6} {'frac':>7} {'fail':>5} | {'CVaR':>7} | {'excess':>7} {'margin':>7} | "
+            f"{'/ law j1':>8} {'j2':>5} {'j3':>5} | {'score':>6} | "
+            f"{'viol':>6} {'frac':>7} {'fail':>5} {'cert':>5} | {'CVaR':>7} | {'excess':>7} {'margin':>7} | "
             f"{'1st viol':>8} | {'u rms':>16} {'u peak':>17}")
     lines = [head, "-" * len(head)]
     for r in records:
@@ -180,11 +205,19 @@ def _table(records: Sequence[dict[str, Any]]) -> str:
         mar = min((v for v in r["min_margin_deg"] if v is not None), default=0.0)
         fv = "-" if r["first_violation_s"] is None else f"{r['first_violation_s']:.3f}"
         cvar = "-" if r["rmse_cvar_deg"] is None else f"{r['rmse_cvar_deg']:.4f}"
+        law = _law_rmse(records, r)
+        if law is not None and all(v is not None for v in r["rmse_deg"]):
+            ratio = f"{r['rmse_deg'][0] / law[0]:>8.3f} " + " ".join(f"{r['rmse_deg'][j] / law[j]:>5.2f}" for j in (1, 2))
+        else:
+            ratio = f"{'-':>8} {'-':>5} {'-':>5}"
+        score = "-" if r.get("score_vs_law") is None else f"{r['score_vs_law']:.3f}"
+        cert = "-" if r.get("certificate_broken") is None else f"{r['certificate_broken']:.2f}"
         urms = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_rms"])
         upk = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_peak"])
         lines.append(
             f"{r['policy']:<16} {r['kind']:<8} {r['scenario']:<14} {r['episodes']:>3} | {f3(r['rmse_deg'])} | "
-            f"{viol:>6} {frac:>7.4f} {r['failure_rate']:>5.2f} | {cvar:>7} | {exc:>7.3f} {mar:>7.3f} | "
+            f"{ratio} | {score:>6} | "
+            f"{viol:>6} {frac:>7.4f} {r['failure_rate']:>5.2f} {cert:>5} | {cvar:>7} | {exc:>7.3f} {mar:>7.3f} | "
             f"{fv:>8} | {urms:>16} {upk:>17}" + ("  DIVERGED" if r["diverged"] else ""))
     return "\n".join(lines)
 
@@ -258,7 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         for c in args.controllers:
             if c not in CONTROLLERS:
                 raise ValueError(f"unknown controller {c!r}; accepted values: {list(CONTROLLERS)}")
-        groups = build_scenarios(args.scenarios, args.suite_seeds, kwargs, args.duration)
+        if args.suite_seeds < 0:
+            raise ValueError(f"--suite-seeds must be >= 0, got {args.suite_seeds}")
+        groups = build_scenarios(args.scenarios, args.suite_seeds, kwargs, args.duration, args.suite)
         if not groups:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
@@ -275,15 +310,44 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.out is not None:
             check_out_dir(args.out)  # a file, a read-only folder: said before the run, not after
-        return _run(args, groups, agents)
+        return _run(args, groups, agents, kwargs)
     except OSError as exc:
         print(f"blf-eval: error: {os_error_message(exc, args.out)}", file=sys.stderr)
         return 2
 
 
-def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list) -> int:
+def _group_provenance(label: str, scenarios: Sequence[Scenario], args: argparse.Namespace,
+                      kwargs: dict[str, Any]) -> dict[str, Any]:
+    suite = label.split("+")[0]
+    prov: dict[str, Any] = {"scenario_kwargs": kwargs or None,
+                            "noise_seeds": [EVAL_SEED_OFFSET + i for i in range(len(scenarios))]}
+    if suite in SUITES:
+        off = suite_seed_offset(suite)
+        prov.update(suite=suite, suite_seeds=[off + k for k in range(len(scenarios))])
+    else:
+        prov.update(suite=None, suite_seeds=None)
+    return prov
+
+
+def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list,
+         kwargs: dict[str, Any] | None = None) -> int:
+    from blf_gym.metrics import provenance
+
+    kwargs = kwargs or {}
+    meta_out = provenance(command=" ".join(["blf-eval", *sys.argv[1:]]) if sys.argv else None)
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
     jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
+    law_cache: dict[tuple[str, str], list[Any]] = {}
+
+    def law_for(label: str, scs: list[Scenario], meta: dict[str, Any] | None) -> list[Any]:
+        # the law on the same episodes and noise: the inner path for baselines, the agent's own
+        # env set-up (control period, noise draws) for agents
+        key = (label, "inner" if meta is None else json.dumps(
+            {k: v for k, v in meta["env_kwargs"].items() if k not in ("residual_scale", "reward_weights",
+                                                                     "privileged")}, sort_keys=True, default=str))
+        if key not in law_cache:
+            law_cache[key] = law_reference(scs, meta, args.threads)
+        return law_cache[key]
     bar = None
     if not args.no_progress:
         from tqdm import tqdm
@@ -298,12 +362,18 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 t0 = time.perf_counter()
                 trajs = (evaluate_controller(name, scs, args.threads) if agent is None
                          else evaluate_agent(*agent, scs, args.threads))
-                rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=time.perf_counter() - t0)
+                wall = time.perf_counter() - t0
+                meta = None if agent is None else agent[1]
+                law = trajs if (agent is None and name == "proposed") else law_for(label, scs, meta)
+                prov = _group_provenance(label, scs, args, kwargs)
+                if meta is not None:
+                    prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"))
+                rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
                 results.append((rec, trajs))
                 if bar is not None:
                     bar.update(1)
                 if args.out is not None:  # finished records are kept if the run is interrupted
-                    write_results([r for r, _ in results], args.out)
+                    write_results([r for r, _ in results], args.out, meta_out)
     except KeyboardInterrupt:
         print("\nblf-eval: interrupted" + ("; finished records were saved" if args.out else ""), file=sys.stderr)
         return 130
@@ -312,13 +382,18 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             bar.close()
     records = [r for r, _ in results]
     print(_table(records))
-    print("\nRMSE, CVaR (mean RMSE of the worst half of the episodes), excess (largest distance "
-          "beyond a bound) and margin (closest approach to a bound, negative when beyond) are in "
-          "degrees; viol is the number of violating 1 ms samples summed over the joints, frac the "
-          "worst joint's violating fraction, fail the share of episodes with a violation, 1st viol "
-          "the earliest violation (s); torques in N m per joint.")
+    print("\nRMSE per joint, pooled over the group's episodes, in degrees; / law: that RMSE over the "
+          "proposed law's on the same group; score: score_vs_law, the geometric mean over joints of "
+          "the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs (per "
+          "episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: "
+          "the worst joint's violating fraction; fail: share of episodes with a violation or divergence; "
+          "cert: certificate_broken, the share of episodes where the policy violates and the law alone, on "
+          "the same scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half "
+          "of the episodes; excess (largest distance beyond a bound) and margin (closest approach to a "
+          "bound, negative when beyond): worst joint, in degrees; 1st viol: earliest violation (s); "
+          "torques in N m per joint.")
     if args.out is not None:
-        write_results(records, args.out)
+        write_results(records, args.out, meta_out)
         written = [] if args.no_plots else _plots(results, args.out)
         if args.save_traj:
             for rec, trajs in results:

@@ -72,15 +72,9 @@ def load_config(path: str | Path) -> dict[str, Any]:
 
 
 def _algo_class(name: str):
-    import stable_baselines3 as sb3
+    from .loading import algorithm_class
 
-    if name == "tqc":
-        try:
-            from sb3_contrib import TQC
-        except ImportError as exc:
-            raise ValueError("--algo tqc needs sb3-contrib (pip install sb3-contrib)") from exc
-        return TQC
-    return {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3}[name]
+    return algorithm_class(name)
 
 
 def _versions() -> dict[str, str]:

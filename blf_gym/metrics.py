@@ -1,8 +1,16 @@
-"""Evaluation metrics on the 1 ms grid and the one results schema every command writes (SPEC section 8).
+"""Evaluation metrics on the 1 ms grid and the one results schema every command writes (docs/model.md).
 
-A *record* pools the episodes of one policy on one scenario. ``results.json`` is
-``{"schema_version": 1, "records": [...]}``; ``results.csv`` has one row per record with per-joint
-fields spread over ``<field>_<joint>`` columns (joints numbered from 1).
+A *record* pools the episodes of one policy on one scenario group. ``results.json`` is
+``{"schema_version": 2, "provenance": {...}, "records": [...]}``; ``results.csv`` has one row per
+record with per-joint fields spread over ``<field>_<joint>`` columns (joints numbered from 1) and
+without the per-episode arrays, which only the JSON holds.
+
+The benchmark's score is :func:`score_vs_law`: per episode, the geometric mean over joints of
+RMSE_law_j / RMSE_policy_j, where the law is the proposed law on the same scenario and the same
+noise sequence. It is 1 at the law's level and higher for better tracking. Violations are never
+folded into it; they are reported beside it (``failure_rate``, ``violations``, and
+``certificate_broken``: the share of episodes in which the policy breaks a bound while the law
+alone does not).
 """
 
 from __future__ import annotations
@@ -22,18 +30,26 @@ __all__ = [
     "SCHEMA_VERSION",
     "RECORD_FIELDS",
     "violation_mask",
+    "score_vs_law",
     "summarize",
     "write_results",
     "read_results",
+    "read_provenance",
+    "provenance",
 ]
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 RECORD_FIELDS = (
     "policy", "kind", "scenario", "episodes", "dt", "rmse_deg", "violations", "violation_fraction",
     "max_excursion_deg", "min_margin_deg", "first_violation_s", "failure_rate", "rmse_cvar_deg",
     "torque_rms", "torque_peak", "saturated_fraction", "diverged", "wall_s",
+    "score_vs_law", "certificate_broken", "law_failure_rate",
+    "per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed",
 )
+PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
+PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds")
+"""Optional per-record fields saying what produced it (the CSV carries them as JSON text)."""
 PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
              "torque_rms", "torque_peak", "saturated_fraction")
 KINDS = ("baseline", "plain", "residual")
@@ -42,6 +58,34 @@ KINDS = ("baseline", "plain", "residual")
 def violation_mask(e1: np.ndarray, k_a: np.ndarray, k_b: np.ndarray) -> np.ndarray:
     """True where e1 is outside the open interval (-k_b, k_a) (eq. 17)."""
     return (e1 >= k_a) | (e1 <= -k_b)
+
+
+def score_vs_law(rmse_policy: Sequence[float] | None, rmse_law: Sequence[float] | None) -> float | None:
+    """The benchmark's score of one episode: the geometric mean over joints of
+    RMSE_law_j / RMSE_policy_j (1 at the law's level, higher is better).
+
+    An episode with no samples (diverged at once) scores 0; without the law's RMSE there is no
+    score (None). RMSEs are floored at 1e-12 degrees so that a perfect joint stays finite.
+    """
+    if rmse_law is None or any(v is None for v in rmse_law):
+        return None
+    if rmse_policy is None or any(v is None for v in rmse_policy):
+        return 0.0
+    p = np.maximum(np.asarray(rmse_policy, dtype=float), 1e-12)
+    law = np.maximum(np.asarray(rmse_law, dtype=float), 1e-12)
+    return float(np.exp(np.mean(np.log(law / p))))
+
+
+def _episode(traj: Any) -> tuple[list[float] | None, int, bool]:
+    """(per-joint RMSE in degrees or None, violating 1 ms samples, failed) of one trajectory."""
+    a = _traj_arrays(traj)
+    e1 = a["e1"]
+    if e1.shape[0] == 0:
+        return None, 0, True
+    mask = violation_mask(e1, a["k_a"], a["k_b"])
+    rmse = np.degrees(np.sqrt(np.mean(e1 ** 2, axis=0))).tolist()
+    failed = bool(mask.any() or getattr(traj, "step_violations", 0) > 0 or getattr(traj, "diverged", False))
+    return rmse, int(mask.any(axis=1).sum()), failed
 
 
 def cvar_upper(values: Sequence[float], alpha: float = 0.5) -> float:
@@ -63,12 +107,22 @@ def summarize(
     scenario: str,
     dt: float,
     wall_s: float = 0.0,
+    law: Sequence[Any] | None = None,
+    provenance: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Pool episodes into one results record.
 
     ``trajectories`` are :class:`blf_gym.simulate.Trajectory` objects (or dicts of their signals).
-    RMSE pools the squared error of all 1 ms samples of all episodes; an episode fails if any of
-    its samples or integration steps violated a bound.
+    RMSE pools the squared error of all 1 ms samples of all episodes, per joint; an episode fails
+    if any of its samples or integration steps violated a bound, or it diverged. ``rmse_cvar_deg``
+    is the mean of the worst half of the episodes' RMSE, each averaged over the joints first.
+    ``max_excursion_deg`` and ``min_margin_deg`` are per joint, over all episodes.
+
+    ``law``: the proposed law's trajectories on the same episodes (same scenario, same noise
+    sequence), one per episode, for :func:`score_vs_law` per episode (``per_episode_score``), its
+    pooled form (``score_vs_law``: the same geometric mean on the pooled RMSEs),
+    ``law_failure_rate`` and ``certificate_broken``. Without it those fields are None.
+    ``provenance`` (see :data:`PROVENANCE_FIELDS`) is copied into the record.
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -132,10 +186,40 @@ def summarize(
             fails += 1
     if episodes == 0:
         raise ValueError("summarize needs at least one trajectory")
+    trajectories = list(trajectories) if not isinstance(trajectories, list) else trajectories
+    eps = [_episode(t) for t in trajectories]
+    extra: dict[str, Any] = {
+        "per_episode_rmse_deg": [e[0] for e in eps],
+        "per_episode_violations": [e[1] for e in eps],
+        "per_episode_failed": [e[2] for e in eps],
+        "per_episode_score": None, "score_vs_law": None, "certificate_broken": None, "law_failure_rate": None,
+    }
+    if law is not None:
+        law = list(law)
+        if len(law) != len(eps):
+            raise ValueError(f"summarize: {len(law)} law trajectories for {len(eps)} episodes")
+        law_eps = [_episode(t) for t in law]
+        extra["per_episode_score"] = [score_vs_law(p[0], q[0]) for p, q in zip(eps, law_eps)]
+        extra["law_failure_rate"] = sum(q[2] for q in law_eps) / len(law_eps)
+        extra["certificate_broken"] = sum(p[2] and not q[2] for p, q in zip(eps, law_eps)) / len(eps)
+        law_sq = law_n = 0.0
+        for t in law:
+            e = _traj_arrays(t)["e1"]
+            if e.shape[0]:
+                law_sq = law_sq + np.sum(e ** 2, axis=0)
+                law_n += e.shape[0]
+        pooled_law = np.degrees(np.sqrt(law_sq / law_n)).tolist() if law_n else None
+        pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
+        extra["score_vs_law"] = score_vs_law(pooled, pooled_law)
+    if provenance:
+        unknown = set(provenance) - set(PROVENANCE_FIELDS)
+        if unknown:
+            raise ValueError(f"summarize: unknown provenance field(s) {sorted(unknown)}; known: {PROVENANCE_FIELDS}")
+        extra.update(provenance)
     if sq_sum is None:
         return {"policy": policy, "kind": kind, "scenario": scenario, "episodes": episodes, "dt": dt,
                 **{k: [None] * n_joints for k in PER_JOINT}, "first_violation_s": None,
-                "failure_rate": 1.0, "rmse_cvar_deg": None, "diverged": True, "wall_s": wall_s}
+                "failure_rate": 1.0, "rmse_cvar_deg": None, "diverged": True, "wall_s": wall_s, **extra}
     return {
         "policy": policy,
         "kind": kind,
@@ -155,31 +239,61 @@ def summarize(
         "saturated_fraction": (sat / count).tolist(),
         "diverged": diverged,
         "wall_s": wall_s,
+        **extra,
     }
 
 
 def _csv_text(records: Sequence[dict[str, Any]]) -> str:
     n = max((len(r["rmse_deg"]) for r in records), default=3)
+    import json
+
+    fields_ = [f for f in RECORD_FIELDS if f not in PER_EPISODE] + list(PROVENANCE_FIELDS)
     header: list[str] = []
-    for f in RECORD_FIELDS:
+    for f in fields_:
         header.extend([f"{f}_{j + 1}" for j in range(n)] if f in PER_JOINT else [f])
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(header)
     for r in records:
         row: list[Any] = []
-        for f in RECORD_FIELDS:
+        for f in fields_:
             v = r.get(f)
             if f in PER_JOINT:
                 row.extend(list(v) + [""] * (n - len(v)))
+            elif f in PROVENANCE_FIELDS and v is not None:
+                row.append(json.dumps(v, sort_keys=True))
             else:
                 row.append("" if v is None else v)
         w.writerow(row)
     return buf.getvalue()
 
 
-def write_results(records: Sequence[dict[str, Any]], out_dir: str | os.PathLike) -> tuple[Path, Path]:
-    """Write ``results.json`` and ``results.csv`` atomically into ``out_dir``; return their paths."""
+def provenance(command: str | None = None, **extra: Any) -> dict[str, Any]:
+    """What produced a results file: package versions, the git commit, the command line, and
+    anything given in ``extra``."""
+    import importlib.metadata as md
+    import platform
+    import subprocess
+
+    versions = {"python": platform.python_version()}
+    for pkg in ("blf-gym", "numpy", "numba", "gymnasium", "stable-baselines3", "torch", "sb3-contrib"):
+        try:
+            versions[pkg] = md.version(pkg)
+        except md.PackageNotFoundError:
+            pass
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
+                                text=True, timeout=5, check=True).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    return {"versions": versions, "git_commit": commit, "command": command, **extra}
+
+
+def write_results(records: Sequence[dict[str, Any]], out_dir: str | os.PathLike,
+                  meta: dict[str, Any] | None = None) -> tuple[Path, Path]:
+    """Write ``results.json`` and ``results.csv`` atomically into ``out_dir``; return their paths.
+
+    ``meta`` (see :func:`provenance`) goes into ``results.json`` as ``"provenance"``."""
     out = Path(out_dir)
     for r in records:
         missing = [f for f in RECORD_FIELDS if f not in r]
@@ -191,16 +305,28 @@ def write_results(records: Sequence[dict[str, Any]], out_dir: str | os.PathLike)
         if len(lengths) != 1:
             raise ValueError(f"record for {r.get('policy')!r}: per-joint fields differ in length {sorted(lengths)}")
     jp, cp = out / "results.json", out / "results.csv"
-    atomic_write_json(jp, {"schema_version": SCHEMA_VERSION, "records": list(records)})
+    atomic_write_json(jp, {"schema_version": SCHEMA_VERSION, "provenance": meta or {}, "records": list(records)})
     atomic_write_text(cp, _csv_text(records))
     return jp, cp
 
 
 def read_results(path: str | os.PathLike) -> list[dict[str, Any]]:
-    """Read a ``results.json`` and check its schema version."""
+    """Read a ``results.json`` and check its schema version (1, the earlier schema without scores,
+    per-episode arrays and provenance, is read with those fields set to None)."""
     import json
 
     data = json.loads(Path(path).read_text())
-    if data.get("schema_version") != SCHEMA_VERSION:
-        raise ValueError(f"{path}: schema_version {data.get('schema_version')!r}, expected {SCHEMA_VERSION}")
-    return data["records"]
+    version = data.get("schema_version")
+    if version not in (1, SCHEMA_VERSION):
+        raise ValueError(f"{path}: schema_version {version!r}, expected {SCHEMA_VERSION} (or 1)")
+    records = data["records"]
+    if version == 1:
+        records = [{**{f: None for f in RECORD_FIELDS}, **r} for r in records]
+    return records
+
+
+def read_provenance(path: str | os.PathLike) -> dict[str, Any]:
+    """The ``provenance`` block of a ``results.json`` (empty for schema 1)."""
+    import json
+
+    return json.loads(Path(path).read_text()).get("provenance") or {}

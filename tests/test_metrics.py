@@ -22,7 +22,10 @@ SPEC_FIELDS = (
     "policy", "kind", "scenario", "episodes", "dt", "rmse_deg", "violations", "violation_fraction",
     "max_excursion_deg", "min_margin_deg", "first_violation_s", "failure_rate", "rmse_cvar_deg",
     "torque_rms", "torque_peak", "saturated_fraction", "diverged", "wall_s",
+    "score_vs_law", "certificate_broken", "law_failure_rate",
 )
+# the per-episode arrays live in the JSON only; provenance fields are JSON text in the CSV
+CSV_PROVENANCE = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds")
 SPEC_PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
                   "torque_rms", "torque_peak", "saturated_fraction")
 
@@ -173,8 +176,11 @@ def record():
     return summarize([EP_A, EP_B, EP_C, EP_D], "mylaw", "residual", "suite-x", 1e-4, wall_s=1.25)
 
 
+PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
+
+
 def test_record_has_every_spec_field_and_nothing_else(record):
-    assert set(record) == set(SPEC_FIELDS)
+    assert set(record) == set(SPEC_FIELDS) | set(PER_EPISODE)
     for f in SPEC_PER_JOINT:
         assert len(record[f]) == 3, f
     assert (record["policy"], record["kind"], record["scenario"], record["dt"], record["wall_s"]) == (
@@ -281,7 +287,7 @@ def test_write_and_read_results_round_trip(record, tmp_path):
     jp, cp = write_results([record, other], tmp_path / "out")
     assert jp == tmp_path / "out" / "results.json" and cp == tmp_path / "out" / "results.csv"
     data = json.loads(jp.read_text())
-    assert data["schema_version"] == 1
+    assert data["schema_version"] == 2
     assert data["records"] == [record, other]
     assert read_results(jp) == [record, other]
     # no temporary files left behind by the atomic writes
@@ -298,7 +304,7 @@ def test_results_csv_spreads_per_joint_fields(record, tmp_path):
     expected = []
     for fld in SPEC_FIELDS:
         expected += [f"{fld}_{j}" for j in (1, 2, 3)] if fld in SPEC_PER_JOINT else [fld]
-    assert header == expected
+    assert header == expected + list(CSV_PROVENANCE)
     for row, rec in zip(rows, (record, other)):
         assert row["policy"] == rec["policy"] and row["kind"] == rec["kind"]
         assert int(row["episodes"]) == rec["episodes"]
@@ -320,9 +326,13 @@ def test_write_results_rejects_a_record_missing_a_field(record, tmp_path):
 
 def test_read_results_checks_the_schema_version(tmp_path):
     p = tmp_path / "results.json"
-    p.write_text(json.dumps({"schema_version": 2, "records": []}))
+    p.write_text(json.dumps({"schema_version": 3, "records": []}))
     with pytest.raises(ValueError, match="schema_version"):
         read_results(p)
+    # the earlier schema is read, its missing fields None
+    p.write_text(json.dumps({"schema_version": 1, "records": [{"policy": "x", "rmse_deg": [1, 2, 3]}]}))
+    rec = read_results(p)[0]
+    assert rec["policy"] == "x" and rec["per_episode_score"] is None and rec["score_vs_law"] is None
     p.write_text(json.dumps({"records": []}))
     with pytest.raises(ValueError, match="schema_version"):
         read_results(p)
@@ -339,3 +349,42 @@ def test_written_files_have_ordinary_permissions(tmp_path):
     os.umask(umask)
     mode = stat.S_IMODE(os.stat(tmp_path / "a.txt").st_mode)
     assert mode == 0o666 & ~umask  # not mkstemp's 0600
+
+
+# ---------------------------------------------------------------------------------------------
+# score_vs_law and the per-episode arrays
+
+
+def test_score_vs_law_is_the_geometric_mean_of_the_law_over_the_policy():
+    from blf_gym.metrics import score_vs_law
+
+    law = [0.2, 0.4, 0.8]
+    assert score_vs_law(law, law) == pytest.approx(1.0)
+    assert score_vs_law([0.1, 0.2, 0.4], law) == pytest.approx(2.0)  # half the error on every joint
+    assert score_vs_law([0.1, 0.4, 0.8], law) == pytest.approx(2.0 ** (1 / 3))  # on one joint of three
+    assert score_vs_law([0.4, 0.8, 1.6], law) == pytest.approx(0.5)
+    assert score_vs_law(None, law) == 0.0  # an episode with no samples
+    assert score_vs_law(law, None) is None  # no law, no score
+
+
+def _ep(err, bound=1.0, n=20):
+    """An episode whose error is ``err`` (rad, per joint) at every sample, bounds +-bound."""
+    t = np.arange(n) * 1e-3
+    e = np.tile(np.asarray(err, dtype=float), (n, 1))
+    return _signals(t, e, np.full(n, bound), np.full(n, bound), np.zeros((n, 3)), np.zeros((n, 3)))
+
+
+def test_per_episode_scores_and_the_certificate():
+    law = [_ep([0.1, 0.1, 0.1]), _ep([0.1, 0.1, 0.1]), _ep([2.0, 0.1, 0.1])]  # the law breaks episode 3
+    pol = [_ep([0.05, 0.05, 0.05]), _ep([2.0, 0.1, 0.1]), _ep([2.0, 0.1, 0.1])]
+    rec = summarize(pol, "p", "residual", "s", 1e-4, law=law)
+    assert rec["per_episode_score"] == pytest.approx([2.0, 0.05 ** (1 / 3), 1.0])
+    assert rec["per_episode_failed"] == [False, True, True]
+    assert rec["per_episode_violations"] == [0, 20, 20]
+    # broken where the policy violates and the law does not: episode 2 only
+    assert rec["certificate_broken"] == pytest.approx(1 / 3)
+    assert rec["law_failure_rate"] == pytest.approx(1 / 3)
+    np.testing.assert_allclose(rec["per_episode_rmse_deg"][0], np.degrees([0.05] * 3))
+    with pytest.raises(ValueError, match="law trajectories"):
+        summarize(pol, "p", "residual", "s", 1e-4, law=law[:2])
+    assert summarize(pol, "p", "residual", "s", 1e-4)["per_episode_score"] is None

@@ -1,0 +1,90 @@
+"""The one loader of a trained agent: model, observation normalization, metadata and env kwargs.
+
+Everything that scores or runs a ``blf-train`` agent (``blf-eval``, the learning-curve callback's
+consumers, the notebooks, ``agents.report``) loads it here, so every check is made once:
+
+* ``metadata.json`` must be readable JSON with the algorithm, mode and env kwargs;
+* an agent trained with observation normalization (``config.normalize`` in its metadata) must
+  have its ``vecnormalize.pkl``: scored without it, its RMSE is several times worse, silently;
+* the statistics must be readable and match the model's observation size.
+
+Each problem raises ``ValueError`` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+from pathlib import Path
+from typing import Any
+
+__all__ = ["algorithm_class", "load_agent"]
+
+
+def algorithm_class(name: str):
+    """The SB3 (or sb3-contrib) class of a training algorithm name."""
+    import stable_baselines3 as sb3
+
+    if name == "tqc":
+        try:
+            from sb3_contrib import TQC
+        except ImportError as exc:
+            raise ValueError("algorithm tqc needs sb3-contrib (pip install sb3-contrib)") from exc
+        return TQC
+    algos = {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3}
+    if name not in algos:
+        raise ValueError(f"unknown algorithm {name!r}; accepted values: {sorted([*algos, 'tqc'])}")
+    return algos[name]
+
+
+def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
+    if not meta_path.is_file():
+        raise ValueError(f"{model_path}: no metadata.json beside the model; was it written by blf-train?")
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{meta_path}: not readable as JSON ({exc}); it should hold the run's metadata") from None
+    if not isinstance(meta, dict):
+        raise ValueError(f"{meta_path}: not a JSON object; it should hold the run's metadata")
+    for key in ("algo", "mode", "env_kwargs"):
+        if key not in meta:
+            raise ValueError(f"{meta_path}: the metadata lacks {key!r}")
+    return meta
+
+
+def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
+    """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` run folder or its
+    model zip. The env kwargs the agent was trained with are ``metadata["env_kwargs"]``."""
+    path = Path(path)
+    if path.is_dir():
+        if not (path / "model.zip").is_file():
+            raise ValueError(f"{path}: no model.zip in this folder; give a blf-train run folder or its model zip")
+        path = path / "model.zip"
+    if not path.is_file():
+        raise ValueError(f"agent model not found: {path}")
+    meta = _metadata(path.with_name("metadata.json"), path)
+    cls = algorithm_class(meta["algo"])
+    try:
+        model = cls.load(path, device="cpu")
+    except Exception as exc:  # SB3 raises several types for a corrupt or foreign zip
+        raise ValueError(f"{path}: cannot be loaded as a {meta['algo'].upper()} model ({exc})") from exc
+    stats = path.with_name("vecnormalize.pkl")
+    config = meta.get("config") if isinstance(meta.get("config"), dict) else None
+    normalized = bool(config.get("normalize")) if config is not None else stats.is_file()
+    norm = None
+    if normalized:
+        if not stats.is_file():
+            raise ValueError(f"{stats}: missing. The agent was trained with observation normalization "
+                             f"(metadata config.normalize), and scored without its statistics its numbers "
+                             "mean nothing; restore the file or retrain")
+        try:
+            with open(stats, "rb") as f:
+                norm = pickle.load(f)
+            obs_shape = tuple(norm.obs_rms.mean.shape)
+        except Exception as exc:  # a truncated or foreign pickle
+            raise ValueError(f"{stats}: not readable as the agent's normalization statistics "
+                             f"({type(exc).__name__}: {exc})") from None
+        if obs_shape != tuple(model.observation_space.shape):
+            raise ValueError(f"{stats}: statistics for observations of shape {obs_shape}, but the model in {path} "
+                             f"takes {tuple(model.observation_space.shape)}")
+    return model, meta, norm
