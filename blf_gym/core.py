@@ -6,17 +6,17 @@ compiled closed loop, observations, rewards and info. There is no other copy of 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numba import njit
 
 from .bounds import bounds_into
-from .controller import NO_CONTROLLER, InnerController, make_controller
-from .params import Scenario
+from .controller import NO_CONTROLLER, InnerController, available_controllers, make_controller
+from .params import DT_MIN, PRESETS, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
-from .scenarios import VARIATIONS, apply_variations, resolve_scenario, sample_suite
+from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import (
     ST_DIVERGED,
     ST_SAT_STEPS,
@@ -84,16 +84,19 @@ class RewardWeights:
     MSE relative to the law's, shifted by a constant. Variance reduction for learning."""
 
     def __post_init__(self) -> None:
+        o = "RewardWeights"
+        for name in ("relative", "law_baseline"):
+            object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
+        object.__setattr__(self, "relative_cap",
+                           check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
+        for name in ("tracking", "torque", "violation"):
+            object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
         if self.alive is None:
             object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
-        for name in ("tracking", "torque", "alive", "violation"):
-            v = getattr(self, name)
-            if not (math.isfinite(v) and v >= 0):
-                raise ValueError(f"RewardWeights.{name} must be finite and >= 0, got {v!r}")
+        object.__setattr__(self, "alive", check_real(o, "alive", self.alive, lo=0.0, none_ok=False,
+                                                     hint=" (or None: tracking * max E + torque)"))
         if self.law_baseline and not self.relative:
             raise ValueError("RewardWeights.law_baseline needs relative=True")
-        if not (math.isfinite(self.relative_cap) and self.relative_cap > 0):
-            raise ValueError(f"RewardWeights.relative_cap must be finite and > 0, got {self.relative_cap!r}")
 
     @property
     def max_error(self) -> float:
@@ -319,19 +322,48 @@ class EnvCore:
         record: bool = False,
         single: bool = False,
     ) -> None:
-        if int(num_envs) != num_envs or num_envs < 1:
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
-        self.num_envs = int(num_envs)
-        self.single = bool(single)
-        self.record = bool(record)
+        # every argument is checked here, before anything is built: ValueError naming it and
+        # what it accepts (bools are not numbers, strings are neither)
+        self.single = check_bool("EnvCore:", "single", single)
+        o = self.owner = "PlanarBLFEnv:" if self.single else "PlanarBLFVectorEnv:"
+        self.num_envs = check_int(o, "num_envs", num_envs, lo=1)
+        self.record = check_bool(o, "record", record)
         if self.single and self.num_envs != 1:
             raise ValueError("a single env core has num_envs == 1")
+        if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
+            raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
+                             f"blf_gym.params.Scenario, got {scenario!r}")
+        if not (controller is None or isinstance(controller, (str, InnerController))):
+            raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
+                             f"blf_gym.controller.InnerController, got {controller!r}")
+        residual_scale = check_real(o, "residual_scale", residual_scale, lo=0.0, lo_open=True, unit="N m")
+        control_period = check_real(o, "control_period", control_period, lo=0.0, lo_open=True, unit="s")
+        privileged = check_bool(o, "privileged", privileged)
+        terminate_on_violation = check_bool(o, "terminate_on_violation", terminate_on_violation)
+        angle_noise_std = check_real(o, "angle_noise_std", angle_noise_std, lo=0.0, unit="rad", none_ok=True)
+        duration = check_real(o, "duration", duration, lo=0.0, lo_open=True, unit="s", none_ok=True)
+        max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
+        dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
+                        hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
+        if not (variations is None or isinstance(variations, Mapping)):
+            raise ValueError(f"{o} variations must be None or a mapping (dict) from names in "
+                             f"{list(VARIATIONS)} to numbers, got {variations!r}")
+        if not (reward_weights is None or isinstance(reward_weights, (RewardWeights, Mapping))):
+            raise ValueError(f"{o} reward_weights must be None, a blf_gym.core.RewardWeights or a mapping "
+                             f"(dict) of its fields {[f.name for f in fields(RewardWeights)]}, got {reward_weights!r}")
+        if isinstance(reward_weights, Mapping):
+            names = [f.name for f in fields(RewardWeights)]
+            unknown = [k for k in reward_weights if k not in names]
+            if unknown:
+                raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
+                                 f"accepted: {names}")
+        threads = check_int(o, "threads", threads, lo=1, none_ok=True)
         base, suite = resolve_scenario(scenario)
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
         if sim_over:
             base = replace(base, sim=replace(base.sim, **sim_over))
-        self.variations = dict(variations or {})
+        self.variations = check_variations({} if variations is None else variations, base.arm.n_links)
         if angle_noise_std is not None:
             self.variations["angle_noise_std"] = angle_noise_std
         # validated now; re-applied after every suite draw so they override it
@@ -341,15 +373,15 @@ class EnvCore:
         # agent period (SPEC section 6): a whole number of integration steps that is either a
         # whole number of 1 ms samples or divides 1 ms (down to a single step, for sampled
         # controllers such as the baseline policies)
-        if not (math.isfinite(control_period) and control_period > 0):
-            raise ValueError(f"control_period must be a positive number of seconds, got {control_period!r}")
+        control_period = check_real(o, "control_period", control_period, lo=0.0, hi=self.sim.duration,
+                                    lo_open=True, unit="s", hint=" (at most the duration)")
         steps = control_period / self.sim.dt
         sps = self.sim.steps_per_sample
         whole = abs(steps - round(steps)) <= 1e-9 * max(steps, 1.0) and round(steps) >= 1
         steps_i = int(round(steps))
         if not whole or (steps_i % sps and sps % steps_i):
             raise ValueError(
-                f"control_period must be a whole multiple of the {self.sim.sample_period} s sample "
+                f"{o} control_period must be a whole multiple of the {self.sim.sample_period} s sample "
                 f"period (e.g. 0.002, 0.005, 0.01) or divide it into whole integration steps of "
                 f"{self.sim.dt} s (e.g. 1e-4, 5e-4), got {control_period!r}")
         self.control_period = float(control_period)
@@ -357,11 +389,9 @@ class EnvCore:
         self.samples_per_period = max(1, steps_i // sps)
         if self.sim.n_steps % self.steps_per_period:
             raise ValueError(
-                f"duration ({self.sim.duration} s) must be a whole number of control periods "
+                f"{o} duration ({self.sim.duration} s) must be a whole number of control periods "
                 f"({self.control_period} s)")
         self.max_episode_steps = self.sim.n_steps // self.steps_per_period
-        if not (math.isfinite(residual_scale) and residual_scale > 0):
-            raise ValueError(f"residual_scale must be a positive number of N m, got {residual_scale!r}")
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
         self.residual = self.controller is not NO_CONTROLLER
         self.residual_scale = float(residual_scale)
@@ -404,6 +434,13 @@ class EnvCore:
         self._threads = threads
 
     # ------------------------------------------------------------------ reset
+    def check_options(self, options: Any) -> dict[str, Any]:
+        """``reset(options=...)`` validated: None or a mapping of :data:`VARIATIONS` knobs, each
+        inside its safe range (ValueError naming the option otherwise); a normalized copy."""
+        if options is None:
+            return {}
+        return check_variations(options, self.n, kind="reset option")
+
     def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
         """The episode's scenario: the suite draw (if any), then option variations."""
         sc = self.base
@@ -412,11 +449,7 @@ class EnvCore:
             if self.variations:
                 sc = apply_variations(sc, self.variations)
         if options:
-            opts = dict(options)
-            var = {k: opts.pop(k) for k in list(opts) if k in VARIATIONS}
-            if opts:
-                raise ValueError(f"unknown reset option(s) {sorted(opts)}; accepted: {list(VARIATIONS)}")
-            sc = apply_variations(sc, var)
+            sc = apply_variations(sc, options)  # validates them (reset_envs checked the type)
         return sc
 
     def reset_envs(self, idx: Sequence[int], options: Mapping[str, Any] | None = None,
@@ -425,6 +458,7 @@ class EnvCore:
         takes the given ``scenarios`` as they are (evaluation on fixed scenarios)."""
         if scenarios is not None and len(scenarios) != len(idx):
             raise ValueError("one scenario per reset arm is required")
+        options = self.check_options(options)
         scs = list(scenarios) if scenarios is not None else [self.scenario_for(self.rngs[i], options) for i in idx]
         for i, sc in zip(idx, scs):
             self.scenarios[i] = sc
@@ -478,9 +512,17 @@ class EnvCore:
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
-        """The actions as a new (N, n) float64 array clipped to [-1, 1]; ValueError if the shape
-        is wrong or an entry is NaN or infinite."""
-        a = np.array(actions, dtype=np.float64)  # a copy: the caller's array is never modified
+        """The actions as a new (N, n) float64 array clipped to [-1, 1]; ValueError if they are
+        not real numbers (complex, bool, strings, objects), the shape is wrong or an entry is NaN
+        or infinite."""
+        try:
+            a = np.asarray(actions)
+        except (TypeError, ValueError) as exc:  # e.g. ragged nested lists
+            raise ValueError(f"action must be an array of real numbers, got {actions!r}") from exc
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"action must be an array of real numbers (float or integer dtype), got "
+                             f"dtype {a.dtype}: {actions!r}")
+        a = np.array(a, dtype=np.float64)  # a copy: the caller's array is never modified
         want = (self.n,) if self.single else (self.num_envs, self.n)
         if a.shape != want:
             raise ValueError(f"action must have shape {want}, got {a.shape}")

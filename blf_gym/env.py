@@ -9,7 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from .core import EnvCore, check_env_kwargs, observation_layout
-from .params import Scenario
+from .params import Scenario, check_int
 
 __all__ = ["PlanarBLFEnv"]
 
@@ -113,6 +113,12 @@ class PlanarBLFEnv(gym.Env):
     step, as the sampled baseline policies use); steps without a 1 ms sample then have no
     tracking or torque term in their reward.
 
+    Every argument, reset option and seed is checked before anything is built: a bad one raises
+    ``ValueError`` naming it and what it accepts. Booleans must be booleans and numbers real
+    numbers (a bool, a string, a complex number or NaN is refused; numpy scalars are accepted);
+    ``dt`` must be at least 1e-7 s; ``reset(seed=...)`` takes None or an integer >= 0 (numpy
+    integers included).
+
     ## Version History
     * v0: initial release.
     """
@@ -142,6 +148,9 @@ class PlanarBLFEnv(gym.Env):
         return self.core.scenarios[0]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        # checked before anything changes; a numpy integer seed is an integer
+        seed = check_int("PlanarBLFEnv.reset:", "seed", seed, lo=0, none_ok=True)
+        options = self.core.check_options(options)
         super().reset(seed=seed)
         self.core.rngs[0] = self.np_random
         self.core.reset_envs([0], options)

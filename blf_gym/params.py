@@ -13,6 +13,7 @@ them into float64 arrays whose layout is documented next to each ``pack_*`` meth
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field, fields, replace
 from typing import Any, Literal
 
@@ -29,30 +30,167 @@ __all__ = [
     "Scenario",
     "PRESETS",
     "preset",
+    "DT_MIN",
+    "check_real",
+    "check_reals",
+    "check_int",
+    "check_bool",
+    "check_choice",
+    "check_instance",
 ]
 
 
-def _positive(owner: str, name: str, value: float) -> None:
-    if not (math.isfinite(value) and value > 0.0):
-        raise ValueError(f"{owner}.{name} must be a finite number > 0, got {value!r}")
+DT_MIN = 1e-7
+"""Smallest accepted integration step ``SimParams.dt``, s (10 000 steps per 1 ms sample)."""
 
 
-def _nonnegative(owner: str, name: str, value: float) -> None:
-    if not (math.isfinite(value) and value >= 0.0):
-        raise ValueError(f"{owner}.{name} must be a finite number >= 0, got {value!r}")
+# ---- validation helpers ---------------------------------------------------------------------
+# One set of checks for every parameter of the package (dataclass fields, env keyword arguments,
+# variations, reset options, seeds). Each raises ValueError naming the field and what it accepts,
+# and returns the value normalized (a Python float / int / bool / str / tuple of floats).
+# ``owner`` is a class name ("SimParams": the label is "SimParams.dt"), ends with a colon
+# ("PlanarBLFEnv:": the label is "PlanarBLFEnv: dt") or is empty (the label is ``name`` itself).
 
 
-def _finite(owner: str, name: str, value: float) -> None:
-    if not math.isfinite(value):
-        raise ValueError(f"{owner}.{name} must be finite, got {value!r}")
+def _label(owner: str, name: str) -> str:
+    if not owner:
+        return name
+    return f"{owner} {name}" if owner.endswith(":") else f"{owner}.{name}"
 
 
-def _as_tuple(owner: str, name: str, value: Any) -> tuple[float, ...]:
-    try:
-        out = tuple(float(v) for v in np.atleast_1d(np.asarray(value, dtype=float)))
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{owner}.{name} must be a sequence of numbers, got {value!r}") from exc
-    return out
+def is_bool(value: Any) -> bool:
+    """True for ``bool`` and ``numpy.bool_``."""
+    return isinstance(value, (bool, np.bool_))
+
+
+def is_real(value: Any) -> bool:
+    """True for a real number: int, float, numpy integer/float scalars (and 0-d arrays of them);
+    False for bools, strings, complex numbers, None and containers."""
+    if isinstance(value, (float, int, np.floating, np.integer)):  # fast path: no ABC check
+        return not isinstance(value, bool)
+    if isinstance(value, np.ndarray):
+        return value.ndim == 0 and value.dtype.kind in "iuf"
+    return isinstance(value, numbers.Real) and not is_bool(value)
+
+
+def is_integer(value: Any) -> bool:
+    """True for int and numpy integer scalars (and 0-d integer arrays), never for bools."""
+    if isinstance(value, (int, np.integer)):
+        return not isinstance(value, bool)
+    if isinstance(value, np.ndarray):
+        return value.ndim == 0 and value.dtype.kind in "iu"
+    return isinstance(value, numbers.Integral) and not is_bool(value)
+
+
+def _fmt(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def _range_text(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
+    if lo is not None and hi is not None:
+        return f" in {'(' if lo_open else '['}{_fmt(lo)}, {_fmt(hi)}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f" {'>' if lo_open else '>='} {_fmt(lo)}"
+    if hi is not None:
+        return f" {'<' if hi_open else '<='} {_fmt(hi)}"
+    return ""
+
+
+def real_text(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+              hi_open: bool = False, unit: str = "", none_ok: bool = False) -> str:
+    """What :func:`check_real` accepts, in words (for error messages)."""
+    rng = _range_text(lo, hi, lo_open, hi_open)
+    u = (f" {unit}" if rng else f" (in {unit})") if unit else ""
+    return ("None or " if none_ok else "") + "a finite real number" + rng + u
+
+
+def check_real(owner: str, name: str, value: Any, lo: float | None = None, hi: float | None = None, *,
+               lo_open: bool = False, hi_open: bool = False, unit: str = "", none_ok: bool = False,
+               hint: str = "") -> Any:
+    """``value`` as a float if it is a finite real number in the given range (``lo_open`` /
+    ``hi_open`` exclude the ends); None if it is None and ``none_ok``; else ValueError
+    ``"<owner>.<name> must be a finite real number ..., got <repr>"``. Bools, strings and
+    complex numbers are refused; numpy integer and float scalars are accepted."""
+    if value is None and none_ok:
+        return None
+    v = math.nan
+    if is_real(value):
+        try:
+            v = float(value)
+        except (OverflowError, ValueError, TypeError):
+            v = math.nan
+    if not (math.isfinite(v) and (lo is None or v > lo or (v == lo and not lo_open))
+            and (hi is None or v < hi or (v == hi and not hi_open))):
+        raise ValueError(f"{_label(owner, name)} must be "
+                         f"{real_text(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit, none_ok=none_ok)}"
+                         f"{hint}, got {value!r}")
+    return v
+
+
+def check_int(owner: str, name: str, value: Any, lo: int | None = None, hi: int | None = None, *,
+              none_ok: bool = False, hint: str = "") -> Any:
+    """``value`` as an int if it is an integer (int or numpy integer, not a bool or a float) in
+    [lo, hi]; None if it is None and ``none_ok``; else ValueError naming the field."""
+    if value is None and none_ok:
+        return None
+    ok = is_integer(value)
+    v = int(value) if ok else 0
+    if not (ok and (lo is None or v >= lo) and (hi is None or v <= hi)):
+        what = ("None or " if none_ok else "") + "an integer" + _range_text(lo, hi, False, False)
+        raise ValueError(f"{_label(owner, name)} must be {what}{hint}, got {value!r}")
+    return v
+
+
+def check_bool(owner: str, name: str, value: Any) -> bool:
+    """``value`` as a bool if it is a bool or ``numpy.bool_`` (not 0/1, not a string)."""
+    if not is_bool(value):
+        raise ValueError(f"{_label(owner, name)} must be a bool (True or False), got {value!r}")
+    return bool(value)
+
+
+def check_choice(owner: str, name: str, value: Any, choices: Any, *, extra: str = "") -> str:
+    """``value`` if it is a string among ``choices``; else ValueError listing them (plus
+    ``extra``, e.g. " or a Scenario")."""
+    if not (isinstance(value, str) and value in choices):
+        raise ValueError(f"{_label(owner, name)} must be one of {list(choices)}{extra}, got {value!r}")
+    return value
+
+
+def check_reals(owner: str, name: str, value: Any, length: int | None = None,
+                lo: float | None = None, hi: float | None = None, *, lo_open: bool = False,
+                hi_open: bool = False, unit: str = "", min_length: int = 1) -> tuple[float, ...]:
+    """``value`` as a tuple of floats if it is a sequence (list, tuple or 1-d array) of ``length``
+    (or at least ``min_length``) real numbers, each as :func:`check_real` with ``lo`` / ``hi``;
+    a bad entry is named as ``<name>[i]``."""
+    def refuse(got: str) -> ValueError:
+        each = real_text(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit)
+        what = (f"a sequence of {length} real numbers" if length is not None
+                else f"a sequence of at least {min_length} real number(s)")
+        return ValueError(f"{_label(owner, name)} must be {what} (each {each}), got {got}{value!r}")
+
+    if isinstance(value, np.ndarray):
+        if value.ndim != 1 or value.dtype.kind not in "iuf":
+            raise refuse("")
+        items: list[Any] = list(value)
+    elif isinstance(value, (list, tuple)):
+        items = list(value)
+    else:
+        raise refuse("")
+    if (length is not None and len(items) != length) or len(items) < min_length:
+        raise refuse(f"{len(items)} entries: ")
+    return tuple(check_real(owner, f"{name}[{i}]", v, lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit)
+                 for i, v in enumerate(items))
+
+
+def check_instance(owner: str, name: str, value: Any, cls: type) -> Any:
+    """``value`` if it is an instance of ``cls``; else ValueError naming the field."""
+    if not isinstance(value, cls):
+        raise ValueError(f"{_label(owner, name)} must be a blf_gym.params.{cls.__name__}, got {value!r}")
+    return value
+
+
+def _set(obj: Any, name: str, value: Any) -> None:
+    object.__setattr__(obj, name, value)
 
 
 @dataclass(frozen=True)
@@ -71,21 +209,13 @@ class ArmParams:
     """Gravitational acceleration along -y, m/s^2 (>= 0)."""
 
     def __post_init__(self) -> None:
-        lengths = _as_tuple("ArmParams", "lengths", self.lengths)
-        masses = _as_tuple("ArmParams", "masses", self.masses)
-        object.__setattr__(self, "lengths", lengths)
-        object.__setattr__(self, "masses", masses)
-        if len(lengths) < 1:
-            raise ValueError("ArmParams.lengths must hold at least one link length")
-        if len(masses) != len(lengths):
-            raise ValueError(
-                f"ArmParams.masses must have one entry per link ({len(lengths)}), got {len(masses)}"
-            )
-        for i, v in enumerate(lengths):
-            _positive("ArmParams", f"lengths[{i}]", v)
-        for i, v in enumerate(masses):
-            _positive("ArmParams", f"masses[{i}]", v)
-        _nonnegative("ArmParams", "gravity", self.gravity)
+        lengths = check_reals("ArmParams", "lengths", self.lengths, lo=0.0, lo_open=True, unit="m")
+        # one mass per link
+        masses = check_reals("ArmParams", "masses", self.masses, len(lengths), lo=0.0, lo_open=True,
+                             unit="kg")
+        _set(self, "lengths", lengths)
+        _set(self, "masses", masses)
+        _set(self, "gravity", check_real("ArmParams", "gravity", self.gravity, lo=0.0, unit="m/s^2"))
 
     @property
     def n_links(self) -> int:
@@ -108,9 +238,10 @@ class FrictionParams:
     """Smoothing slope psi of the Coulomb term, s/rad (> 0)."""
 
     def __post_init__(self) -> None:
-        _nonnegative("FrictionParams", "viscous", self.viscous)
-        _nonnegative("FrictionParams", "coulomb", self.coulomb)
-        _positive("FrictionParams", "tanh_slope", self.tanh_slope)
+        _set(self, "viscous", check_real("FrictionParams", "viscous", self.viscous, lo=0.0, unit="N m s/rad"))
+        _set(self, "coulomb", check_real("FrictionParams", "coulomb", self.coulomb, lo=0.0, unit="N m"))
+        _set(self, "tanh_slope", check_real("FrictionParams", "tanh_slope", self.tanh_slope, lo=0.0,
+                                            lo_open=True, unit="s/rad"))
 
 
 @dataclass(frozen=True)
@@ -131,12 +262,11 @@ class DeadZoneParams:
     """tau_l, N m (<= 0)."""
 
     def __post_init__(self) -> None:
-        _positive("DeadZoneParams", "slope_right", self.slope_right)
-        _positive("DeadZoneParams", "slope_left", self.slope_left)
-        _nonnegative("DeadZoneParams", "break_right", self.break_right)
-        _finite("DeadZoneParams", "break_left", self.break_left)
-        if self.break_left > 0.0:
-            raise ValueError(f"DeadZoneParams.break_left must be <= 0, got {self.break_left!r}")
+        o = "DeadZoneParams"
+        _set(self, "slope_right", check_real(o, "slope_right", self.slope_right, lo=0.0, lo_open=True))
+        _set(self, "slope_left", check_real(o, "slope_left", self.slope_left, lo=0.0, lo_open=True))
+        _set(self, "break_right", check_real(o, "break_right", self.break_right, lo=0.0, unit="N m"))
+        _set(self, "break_left", check_real(o, "break_left", self.break_left, hi=0.0, unit="N m"))
 
 
 @dataclass(frozen=True)
@@ -155,13 +285,8 @@ class ForceParams:
     20 s is the default here."""
 
     def __post_init__(self) -> None:
-        w = _as_tuple("ForceParams", "wrench", self.wrench)
-        if len(w) != 3:
-            raise ValueError(f"ForceParams.wrench must have 3 entries (f_x, f_y, moment), got {len(w)}")
-        for i, v in enumerate(w):
-            _finite("ForceParams", f"wrench[{i}]", v)
-        object.__setattr__(self, "wrench", w)
-        _nonnegative("ForceParams", "onset", self.onset)
+        _set(self, "wrench", check_reals("ForceParams", "wrench", self.wrench, 3))  # (f_x, f_y, moment)
+        _set(self, "onset", check_real("ForceParams", "onset", self.onset, lo=0.0, unit="s"))
 
 
 Branch = Literal["smooth", "standard"]
@@ -190,17 +315,12 @@ class ReferenceParams:
     """Inverse-kinematics branch: "smooth" or "standard"."""
 
     def __post_init__(self) -> None:
-        _positive("ReferenceParams", "frequency", self.frequency)
-        c = _as_tuple("ReferenceParams", "center", self.center)
-        if len(c) != 2:
-            raise ValueError(f"ReferenceParams.center must have 2 entries, got {len(c)}")
-        object.__setattr__(self, "center", c)
-        _positive("ReferenceParams", "radius", self.radius)
-        _finite("ReferenceParams", "orientation", self.orientation)
-        if self.branch not in ("smooth", "standard"):
-            raise ValueError(
-                f"ReferenceParams.branch must be 'smooth' or 'standard', got {self.branch!r}"
-            )
+        o = "ReferenceParams"
+        _set(self, "frequency", check_real(o, "frequency", self.frequency, lo=0.0, lo_open=True, unit="Hz"))
+        _set(self, "center", check_reals(o, "center", self.center, 2, unit="m"))
+        _set(self, "radius", check_real(o, "radius", self.radius, lo=0.0, lo_open=True, unit="m"))
+        _set(self, "orientation", check_real(o, "orientation", self.orientation, unit="rad"))
+        check_choice(o, "branch", self.branch, ("smooth", "standard"))
 
 
 @dataclass(frozen=True)
@@ -223,11 +343,11 @@ class BoundParams:
     """Decay rate, 1/s (>= 0)."""
 
     def __post_init__(self) -> None:
-        _nonnegative("BoundParams", "upper_amplitude", self.upper_amplitude)
-        _positive("BoundParams", "upper_floor", self.upper_floor)
-        _nonnegative("BoundParams", "lower_amplitude", self.lower_amplitude)
-        _positive("BoundParams", "lower_floor", self.lower_floor)
-        _nonnegative("BoundParams", "decay_rate", self.decay_rate)
+        o = "BoundParams"
+        for name, lo_open, unit in (("upper_amplitude", False, "rad"), ("upper_floor", True, "rad"),
+                                    ("lower_amplitude", False, "rad"), ("lower_floor", True, "rad"),
+                                    ("decay_rate", False, "1/s")):
+            _set(self, name, check_real(o, name, getattr(self, name), lo=0.0, lo_open=lo_open, unit=unit))
 
     def pack(self) -> np.ndarray:
         """Layout ``[upper_amplitude, upper_floor, lower_amplitude, lower_floor, decay_rate]``."""
@@ -265,20 +385,19 @@ class SimParams:
     saturating actuator can keep an unstable integration finite; this still catches it."""
 
     def __post_init__(self) -> None:
-        _positive("SimParams", "dt", self.dt)
-        _positive("SimParams", "duration", self.duration)
-        _positive("SimParams", "sample_period", self.sample_period)
-        _positive("SimParams", "max_torque", self.max_torque)
-        _positive("SimParams", "divergence_limit", self.divergence_limit)
-        _positive("SimParams", "error_rtol", self.error_rtol)
-        _positive("SimParams", "error_atol", self.error_atol)
-        if int(self.unstable_steps) != self.unstable_steps or self.unstable_steps < 1:
-            raise ValueError(f"SimParams.unstable_steps must be an integer >= 1, got {self.unstable_steps!r}")
+        o = "SimParams"
+        _set(self, "sample_period", check_real(o, "sample_period", self.sample_period, DT_MIN, unit="s"))
+        _set(self, "dt", check_real(o, "dt", self.dt, DT_MIN, self.sample_period, unit="s",
+                                    hint=f" dividing sample_period={self.sample_period} s exactly"))
+        for name, unit in (("duration", "s"), ("max_torque", "N m"), ("divergence_limit", ""),
+                           ("error_rtol", ""), ("error_atol", "")):
+            _set(self, name, check_real(o, name, getattr(self, name), lo=0.0, lo_open=True, unit=unit))
+        _set(self, "unstable_steps", check_int(o, "unstable_steps", self.unstable_steps, lo=1))
         ratio = self.sample_period / self.dt
         if abs(ratio - round(ratio)) > 1e-9 * ratio or round(ratio) < 1:
             raise ValueError(
                 f"SimParams.dt must divide sample_period={self.sample_period} s exactly "
-                f"(e.g. 1e-4, 5e-5, 1e-3), got dt={self.dt}"
+                f"(e.g. 1e-4, 5e-5, 1e-3; at least {DT_MIN:g} s), got dt={self.dt}"
             )
         n = self.duration / self.sample_period
         if abs(n - round(n)) > 1e-9 * n:
@@ -323,16 +442,20 @@ class Scenario:
     """Standard deviation of white noise added to the measured angles at each step, rad (>= 0)."""
 
     def __post_init__(self) -> None:
-        e0 = _as_tuple("Scenario", "initial_error", self.initial_error)
-        object.__setattr__(self, "initial_error", e0)
+        if not isinstance(self.name, str):
+            raise ValueError(f"Scenario.name must be a string, got {self.name!r}")
+        for name, cls in (("arm", ArmParams), ("friction", FrictionParams), ("dead_zone", DeadZoneParams),
+                          ("force", ForceParams), ("reference", ReferenceParams), ("bounds", BoundParams),
+                          ("sim", SimParams)):
+            check_instance("Scenario", name, getattr(self, name), cls)
         n = self.arm.n_links
         if n != 3:
             raise ValueError(
                 f"Scenario.arm must have 3 links: the paper's reference (a Cartesian circle with a "
                 f"fixed orientation) is solved by 3-link inverse kinematics; got {n}"
             )
-        if len(e0) != n:
-            raise ValueError(f"Scenario.initial_error must have {n} entries, got {len(e0)}")
+        e0 = check_reals("Scenario", "initial_error", self.initial_error, n, unit="rad")
+        _set(self, "initial_error", e0)
         b = self.bounds
         ka0 = b.upper_amplitude + b.upper_floor
         kb0 = b.lower_amplitude + b.lower_floor
@@ -342,7 +465,8 @@ class Scenario:
                     f"Scenario.initial_error[{i}]={e} must lie inside the bounds at t=0, "
                     f"the open interval ({-kb0}, {ka0}) rad"
                 )
-        _nonnegative("Scenario", "angle_noise_std", self.angle_noise_std)
+        _set(self, "angle_noise_std", check_real("Scenario", "angle_noise_std", self.angle_noise_std, lo=0.0,
+                                                 unit="rad"))
         self._check_reference_geometry()
 
     def _check_reference_geometry(self) -> None:
@@ -415,9 +539,13 @@ PRESETS: dict[str, Scenario] = {
 
 def preset(name: str, **sim_overrides: Any) -> Scenario:
     """The named paper preset, optionally with :class:`SimParams` fields replaced (e.g. ``dt``)."""
-    if name not in PRESETS:
+    if not (isinstance(name, str) and name in PRESETS):
         raise ValueError(f"unknown preset {name!r}; accepted values: {sorted(PRESETS)}")
     sc = PRESETS[name]
+    unknown = sorted(set(sim_overrides) - {f.name for f in fields(SimParams)})
+    if unknown:
+        raise ValueError(f"preset: unknown SimParams field(s) {unknown}; accepted: "
+                         f"{[f.name for f in fields(SimParams)]}")
     if sim_overrides:
         sc = replace(sc, sim=replace(sc.sim, **sim_overrides))
     return sc

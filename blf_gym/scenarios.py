@@ -34,10 +34,10 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from .params import PRESETS, ArmParams, Scenario, preset
+from .params import PRESETS, ArmParams, Scenario, check_bool, check_real, is_real, preset, real_text
 
-__all__ = ["VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "apply_variations", "sample_suite",
-           "resolve_scenario", "SUITES"]
+__all__ = ["VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "UNITS", "apply_variations", "check_variations",
+           "sample_suite", "resolve_scenario", "SUITES"]
 
 VARIATIONS = ("frequency", "force", "force_onset", "friction_scale", "dead_zone_scale", "payload",
               "initial_error", "angle_noise_std")
@@ -52,7 +52,8 @@ SAFE_RANGES: dict[str, tuple[float, float]] = {
     "initial_error": (-0.1, 0.1),
     "angle_noise_std": (0.0, 2e-4),
 }
-"""Documented ranges; values outside raise ValueError (pass ``strict=False`` to allow them)."""
+"""Documented ranges; values outside raise ValueError (pass ``strict=False`` to allow them).
+Every value must be a finite real number (a bool or a string is refused)."""
 
 SUITE_RANGES: dict[str, tuple[float, float]] = {
     "frequency": (0.1, 0.5),
@@ -69,67 +70,99 @@ SUITE_RANGES: dict[str, tuple[float, float]] = {
 SUITES = ("randomized",)
 
 
-def _check(name: str, value: float, strict: bool) -> None:
-    lo, hi = SAFE_RANGES[name]
-    if not np.isfinite(value):
-        raise ValueError(f"variation {name!r} must be finite, got {value!r}")
-    if strict and not (lo <= value <= hi):
-        raise ValueError(f"variation {name!r}={value!r} is outside its safe range [{lo}, {hi}] "
-                         "(see blf_gym.scenarios). To run it anyway, build the Scenario with "
-                         "blf_gym.scenarios.apply_variations(scenario, {...}, strict=False) and pass "
-                         "it as scenario=")
+UNITS: dict[str, str] = {
+    "frequency": "Hz", "force": "N", "force_onset": "s", "friction_scale": "", "dead_zone_scale": "",
+    "payload": "kg", "initial_error": "rad", "angle_noise_std": "rad",
+}
+"""Unit of each knob of :data:`VARIATIONS` (empty: dimensionless)."""
+
+# what the plant itself accepts, for strict=False: (lower end, whether it is excluded)
+_PHYSICAL: dict[str, tuple[float | None, bool]] = {
+    "frequency": (0.0, True), "force": (None, False), "force_onset": (0.0, False),
+    "friction_scale": (0.0, False), "dead_zone_scale": (0.0, False), "payload": (0.0, True),
+    "initial_error": (None, False), "angle_noise_std": (0.0, False),
+}
+
+_OUTSIDE_HINT = (" (its safe range, see blf_gym.scenarios; to run outside it, build the Scenario "
+                 "with blf_gym.scenarios.apply_variations(scenario, {...}, strict=False) and pass it "
+                 "as scenario=)")
+
+
+def _knob(kind: str, name: str, value: Any, strict: bool, index: int | None = None) -> float:
+    label = f"{kind} {name!r}" + ("" if index is None else f"[{index}]")
+    if strict:
+        lo, hi = SAFE_RANGES[name]
+        return check_real("", label, value, lo, hi, unit=UNITS[name], hint=_OUTSIDE_HINT)
+    lo, lo_open = _PHYSICAL[name]
+    return check_real("", label, value, lo, lo_open=lo_open, unit=UNITS[name])
+
+
+def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
+                     kind: str = "variation") -> dict[str, Any]:
+    """A validated copy of ``variations`` (a mapping of knobs of :data:`VARIATIONS` to values),
+    each value a float (``initial_error``: a tuple of ``n_links`` floats). ValueError naming the
+    knob and its accepted range otherwise: every value must be a finite real number (not a bool
+    or a string) inside :data:`SAFE_RANGES` when ``strict``. ``kind`` names the knobs in messages
+    ("variation", "reset option")."""
+    if not isinstance(variations, Mapping):
+        raise ValueError(f"{kind}s must be a mapping (dict) from names in {list(VARIATIONS)} to "
+                         f"numbers, got {variations!r}")
+    strict = check_bool("apply_variations:", "strict", strict)
+    unknown = [k for k in variations if not (isinstance(k, str) and k in VARIATIONS)]
+    if unknown:
+        raise ValueError(f"unknown {kind}(s) {sorted(unknown, key=repr)}; accepted: {list(VARIATIONS)}")
+    out: dict[str, Any] = {}
+    for name, value in variations.items():
+        if name != "initial_error":
+            out[name] = _knob(kind, name, value, strict)
+            continue
+        if is_real(value):
+            out[name] = (_knob(kind, name, value, strict),) * n_links
+            continue
+        seq = isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim == 1)
+        if not (seq and len(value) == n_links):
+            lo, hi = SAFE_RANGES[name] if strict else (None, None)
+            raise ValueError(
+                f"{kind} 'initial_error' must be one real number (the same for every joint) or a "
+                f"sequence of {n_links} (one per joint), each {real_text(lo, hi, unit='rad')}"
+                f"{_OUTSIDE_HINT if strict else ''}, got {value!r}")
+        out[name] = tuple(_knob(kind, name, v, strict, i) for i, v in enumerate(value))
+    return out
 
 
 def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True) -> Scenario:
-    """``base`` with the named knobs of :data:`VARIATIONS` applied."""
-    unknown = set(variations) - set(VARIATIONS)
-    if unknown:
-        raise ValueError(f"unknown variation(s) {sorted(unknown)}; accepted: {list(VARIATIONS)}")
+    """``base`` with the named knobs of :data:`VARIATIONS` applied (validated by
+    :func:`check_variations`)."""
+    v = check_variations(variations, base.arm.n_links, strict)
     sc = base
-    v = dict(variations)
     if "frequency" in v:
-        _check("frequency", float(v["frequency"]), strict)
-        sc = replace(sc, reference=replace(sc.reference, frequency=float(v["frequency"])))
+        sc = replace(sc, reference=replace(sc.reference, frequency=v["frequency"]))
     if "force" in v or "force_onset" in v:
-        wrench = sc.force.wrench
-        onset = sc.force.onset
-        if "force" in v:
-            _check("force", float(v["force"]), strict)
-            wrench = (float(v["force"]), 0.0, 0.0)
-        if "force_onset" in v:
-            _check("force_onset", float(v["force_onset"]), strict)
-            onset = float(v["force_onset"])
+        wrench = (v["force"], 0.0, 0.0) if "force" in v else sc.force.wrench
+        onset = v.get("force_onset", sc.force.onset)
         sc = replace(sc, force=replace(sc.force, wrench=wrench, onset=onset))
     if "friction_scale" in v:
-        s = float(v["friction_scale"])
-        _check("friction_scale", s, strict)
+        s = v["friction_scale"]
         sc = replace(sc, friction=replace(sc.friction, viscous=sc.friction.viscous * s,
                                           coulomb=sc.friction.coulomb * s))
     if "dead_zone_scale" in v:
-        s = float(v["dead_zone_scale"])
-        _check("dead_zone_scale", s, strict)
+        s = v["dead_zone_scale"]
         sc = replace(sc, dead_zone=replace(sc.dead_zone, break_right=sc.dead_zone.break_right * s,
                                            break_left=sc.dead_zone.break_left * s))
     if "payload" in v:
-        m = float(v["payload"])
-        _check("payload", m, strict)
         masses = list(sc.arm.masses)
-        masses[-1] = m
+        masses[-1] = v["payload"]
         sc = replace(sc, arm=ArmParams(lengths=sc.arm.lengths, masses=tuple(masses), gravity=sc.arm.gravity))
     if "initial_error" in v:
-        e = np.broadcast_to(np.asarray(v["initial_error"], dtype=float), (sc.arm.n_links,))
-        for x in e:
-            _check("initial_error", float(x), strict)
-        sc = replace(sc, initial_error=tuple(float(x) for x in e))
+        sc = replace(sc, initial_error=v["initial_error"])
     if "angle_noise_std" in v:
-        _check("angle_noise_std", float(v["angle_noise_std"]), strict)
-        sc = replace(sc, angle_noise_std=float(v["angle_noise_std"]))
+        sc = replace(sc, angle_noise_std=v["angle_noise_std"])
     return sc
 
 
 def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: str = "randomized") -> Scenario:
     """Draw one scenario of the randomized suite from ``rng`` (the only source of randomness)."""
-    if name not in SUITES:
+    if not (isinstance(name, str) and name in SUITES):
         raise ValueError(f"unknown suite {name!r}; accepted: {list(SUITES)}")
     base = base if base is not None else preset("paper-0.1hz")
     draws: dict[str, Any] = {}
@@ -147,9 +180,9 @@ def resolve_scenario(spec: "str | Scenario") -> tuple[Scenario, str | None]:
     """(base scenario, suite name or None) for a preset name, a suite name or a Scenario."""
     if isinstance(spec, Scenario):
         return spec, None
-    if spec in SUITES:
+    if isinstance(spec, str) and spec in SUITES:
         return preset("paper-0.1hz"), spec
-    if spec in PRESETS:
+    if isinstance(spec, str) and spec in PRESETS:
         return preset(spec), None
-    raise ValueError(f"unknown scenario {spec!r}; accepted: {sorted(PRESETS) + list(SUITES)} "
-                     "or a blf_gym.params.Scenario")
+    raise ValueError(f"unknown scenario {spec!r}: scenario must be one of "
+                     f"{sorted(PRESETS) + list(SUITES)} or a blf_gym.params.Scenario")

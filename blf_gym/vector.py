@@ -18,6 +18,7 @@ from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
 from .core import EnvCore, check_env_kwargs
+from .params import check_int, is_integer
 
 __all__ = ["PlanarBLFVectorEnv"]
 
@@ -39,7 +40,8 @@ class PlanarBLFVectorEnv(VectorEnv):
 
     def __init__(self, num_envs: int = 1, render_mode: str | None = None, **kwargs: Any) -> None:
         if render_mode is not None:
-            raise ValueError("PlanarBLFVectorEnv does not render; use the single env for pictures")
+            raise ValueError("PlanarBLFVectorEnv: render_mode must be None (the vector env does not "
+                             f"render; use the single env for pictures), got {render_mode!r}")
         check_env_kwargs(kwargs)
         self.core = EnvCore(num_envs, **kwargs)
         self.num_envs = self.core.num_envs
@@ -52,16 +54,25 @@ class PlanarBLFVectorEnv(VectorEnv):
         self._started = False
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
-        """Reset every arm. ``seed`` s seeds arm i with s + i (or give one seed per arm)."""
+        """Reset every arm. ``seed`` s (an int or numpy integer >= 0) seeds arm i with s + i; or
+        give a list of one seed per arm (each an integer >= 0, or None to continue its stream).
+        Anything else, and bad ``options``, raise ValueError before any arm changes."""
         N = self.num_envs
+        o = "PlanarBLFVectorEnv.reset:"
+        accepted = (f"None, an integer >= 0 (arm i gets seed + i) or a list of {N} seeds (one per arm, "
+                    "each an integer >= 0 or None)")
         if seed is None:
             seeds: list[int | None] = [None] * N
-        elif isinstance(seed, int):
-            seeds = [seed + i for i in range(N)]
+        elif is_integer(seed):  # int or numpy integer, never a bool
+            s0 = check_int(o, "seed", seed, lo=0, hint=f" ({accepted})")
+            seeds = [s0 + i for i in range(N)]
+        elif isinstance(seed, (list, tuple)) or (isinstance(seed, np.ndarray) and seed.ndim == 1):
+            if len(seed) != N:
+                raise ValueError(f"{o} seed must be {accepted}, got {len(seed)} seeds: {seed!r}")
+            seeds = [check_int(o, f"seed[{i}]", s, lo=0, none_ok=True) for i, s in enumerate(seed)]
         else:
-            seeds = list(seed)
-            if len(seeds) != N:
-                raise ValueError(f"reset(seed=list) needs {N} seeds, got {len(seeds)}")
+            raise ValueError(f"{o} seed must be {accepted}, got {seed!r}")
+        options = self.core.check_options(options)
         for i, s in enumerate(seeds):
             if s is not None or not self._started:
                 self.core.rngs[i], _ = seeding.np_random(s)
