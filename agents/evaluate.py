@@ -31,7 +31,7 @@ import numpy as np
 from blf_gym.io import check_out_dir, os_error_message
 from blf_gym.metrics import summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
-from blf_gym.scenarios import apply_variations, sample_suite
+from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
 from .loading import load_agent  # the one agent loader, re-exported here
 
@@ -43,9 +43,6 @@ EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
 
 
-SUITES = ("randomized", "stress")
-"""The scenario suites: the training suite (its held-out seeds) and the stress suite (never trained
-or selected on)."""
 
 
 def suite_seed_offset(suite: str) -> int:
@@ -80,13 +77,9 @@ def build_scenarios(
         groups.append((sc.name, [sc]))
     if suite_seeds > 0:
         offset = suite_seed_offset(suite)
-        if suite == "stress":
-            from blf_gym.scenarios import sample_stress as sample
-        else:
-            sample = sample_suite
         eps = []
         for k in range(suite_seeds):
-            sc = sample(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over))
+            sc = sample_suite(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over), suite)
             if kwargs:
                 sc = apply_variations(sc, kwargs)
             eps.append(sc)

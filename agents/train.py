@@ -287,6 +287,9 @@ def train(
     if mode == "residual" and controller not in available_controllers():
         raise ValueError(f"unknown controller {controller!r}; accepted values: {available_controllers()}")
     resolve_scenario(scenario)
+    if scenario == "stress":
+        raise ValueError("the stress suite is held out: no training, tuning, seed choice or early stopping may "
+                         "read it (blf-eval --suite stress scores on it); train on randomized or a preset")
     if resume and prior is not None and isinstance(prior.get("config"), dict):
         cfg = prior["config"]
         cfg_path = Path(prior.get("config_file") or "")

@@ -105,6 +105,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         cfgs = [load_config(c) for c in args.configs]
         if args.timesteps < 1 or args.jobs < 1:
             raise ValueError("--timesteps and --jobs must be >= 1")
+        if args.scenario == "stress":
+            raise ValueError("the stress suite is held out and never trained or tuned on; use randomized")
         # every candidate is scored against the law on the same scenarios
         scoring = {(c.get("curve_suite_seeds", 4), (c.get("env") or {}).get("duration")) for c in cfgs}
         if len(scoring) > 1:

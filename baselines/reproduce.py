@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from blf_gym.io import check_out_dir, os_error_message
-from blf_gym.metrics import summarize, write_results
+from blf_gym.metrics import provenance, summarize, write_results
 from blf_gym.params import PRESETS, preset
 from blf_gym.simulate import divergence_message
 
@@ -103,24 +103,31 @@ def run_cases(
 
         bar = tqdm(total=len(controllers) * len(scenarios), unit="case", desc="blf-reproduce",
                    file=sys.stderr, leave=False)
+    # the proposed law runs first when asked for: every record's score_vs_law is against it
+    order = sorted(controllers, key=lambda c: c != "proposed")
+    law: list[Any] | None = None
     try:
-        for ctrl in controllers:
+        for ctrl in order:
             if bar is not None:
                 bar.set_postfix_str(ctrl)
             t0 = time.perf_counter()
             trajs = simulate_batch(scenarios, ctrl)
             wall = time.perf_counter() - t0
-            for sc, tr in zip(scenarios, trajs):
-                rec = summarize([tr], ctrl, "baseline", sc.name, sc.sim.dt, wall_s=wall / len(trajs))
+            if ctrl == "proposed":
+                law = trajs
+            elif law is None:
+                law = simulate_batch(scenarios, "proposed")
+            for sc, tr, lt in zip(scenarios, trajs, law):
+                rec = summarize([tr], ctrl, "baseline", sc.name, sc.sim.dt, wall_s=wall / len(trajs), law=[lt])
                 done.append((rec, tr))
             if bar is not None:
                 bar.update(len(scenarios))
             if on_done is not None:
-                on_done(done)
+                on_done(sorted(done, key=lambda p: list(controllers).index(p[0]["policy"])))
     finally:
         if bar is not None:
             bar.close()
-    return done
+    return sorted(done, key=lambda p: list(controllers).index(p[0]["policy"]))
 
 
 def _fmt3(values: Sequence[float | None], width: int = 8, prec: int = 4) -> str:
@@ -177,7 +184,7 @@ def _run(args: argparse.Namespace) -> int:
     def save(pairs: list[tuple[dict[str, Any], Any]]) -> None:
         if args.out is None:
             return
-        write_results([r for r, _ in pairs], args.out)
+        write_results([r for r, _ in pairs], args.out, provenance(" ".join(["blf-reproduce", *sys.argv[1:]])))
         if args.save_traj:
             for rec, tr in pairs:
                 key = (rec["scenario"], rec["policy"])

@@ -19,6 +19,7 @@ from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import (
     ST_DIVERGED,
+    ST_FIRST_VIOL,
     ST_SAT_STEPS,
     ST_VIOL_SAMPLES,
     ST_VIOL_STEPS,
@@ -146,7 +147,7 @@ def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, 
     rows += [(f"q_d_{j+1}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP) for j in range(n)]
     rows += [(f"qd_d_{j+1} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
     rows += [(f"qdd_d_{j+1} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION, SQUASH_REF_ACCELERATION) for j in range(n)]
-    rows += [(f"e1_{j+1} / bound (clipped)", "-", -_ERR_CLIP, _ERR_CLIP) for j in range(n)]
+    rows += [(f"(y_{j+1} - q_d_{j+1}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP) for j in range(n)]
     rows += [("k_a", "rad", 0.0, 10.0), ("k_b", "rad", 0.0, 10.0),
              ("k_a'", "rad/s", -10.0, 10.0), ("k_b'", "rad/s", -10.0, 10.0),
              ("sin(2 pi f t)", "-", -1.0, 1.0), ("cos(2 pi f t)", "-", -1.0, 1.0),
@@ -178,9 +179,11 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
         kb = bnd[b, 3]
         o = out[b]
         for j in range(n):
-            q = X[b, j]
-            e = q - ref[b, j]
-            o[j] = min(max(q + noise[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
+            # the measured angle, and the error the agent can know: from the measurement, not
+            # from the true angle (info["e1"] and the privileged entries keep the true one)
+            y = X[b, j] + noise[b, j]
+            e = y - ref[b, j]
+            o[j] = min(max(y, -_ANGLE_CLIP), _ANGLE_CLIP)
             o[n + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
             o[2 * n + j] = _sq(ref[b, n + j], SQUASH_VELOCITY)
             o[3 * n + j] = _sq(ref[b, 2 * n + j], SQUASH_REF_ACCELERATION)
@@ -225,6 +228,31 @@ def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privilege
             state[b, j] = ej
             state[b, n + j] = ej - bnd[b, 0]
             state[b, 2 * n + j] = -bnd[b, 3] - ej
+
+
+# per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
+EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP = range(6)
+N_EP_INT = 6
+EP_SAMPLES, EP_E2_JOINT = range(2)
+
+
+@njit(cache=True, error_model="numpy")
+def _accumulate_episode(status, sums, ksteps, ep_int, ep_f):
+    """Add one kernel call's status and sums to the episode totals (one compiled call per step)."""
+    N = status.shape[0]
+    n = ep_f.shape[1] - EP_E2_JOINT
+    for b in range(N):
+        ep_int[b, EP_VIOL_STEPS] += status[b, ST_VIOL_STEPS]
+        if ep_int[b, EP_FIRST_VIOL] < 0 and status[b, ST_FIRST_VIOL] >= 0:
+            ep_int[b, EP_FIRST_VIOL] = status[b, ST_FIRST_VIOL]
+        ep_int[b, EP_SAT_STEPS] += status[b, ST_SAT_STEPS]
+        ep_int[b, EP_VIOL_SAMPLES] += status[b, ST_VIOL_SAMPLES]
+        if ep_int[b, EP_DIV_CODE] == 0 and status[b, ST_DIVERGED] != 0:
+            ep_int[b, EP_DIV_CODE] = status[b, ST_DIVERGED]
+            ep_int[b, EP_DIV_STEP] = ksteps[b]
+        ep_f[b, EP_SAMPLES] += sums[b, SUM_SAMPLES]
+        for j in range(n):
+            ep_f[b, EP_E2_JOINT + j] += sums[b, SUM_E2_JOINT + j]
 
 
 @njit(cache=True, error_model="numpy")
@@ -422,6 +450,9 @@ class EnvCore:
         self._bnd = np.zeros((N, 6))
         self._obs_noise = np.zeros((N, n))
         self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
+        self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
+        self._ep_int[:, EP_FIRST_VIOL] = -1
+        self._ep_f = np.zeros((N, EP_E2_JOINT + n))
         self._durations = np.zeros(N)
         self._umax = np.zeros(N)
         self._law_e2 = np.ones((N, n))
@@ -474,6 +505,9 @@ class EnvCore:
             self.last_x3[i] = 0.0
             self.done[i] = False
             self._chunks[i] = []
+            self._ep_int[i] = 0
+            self._ep_int[i, EP_FIRST_VIOL] = -1
+            self._ep_f[i] = 0.0
 
     def law_level(self, scenarios: Sequence[Scenario]) -> tuple[np.ndarray, np.ndarray]:
         """The reference law alone on each scenario, without noise (see
@@ -554,6 +588,7 @@ class EnvCore:
                 if nrec[i]:
                     self._chunks[i].append(rec[i, : nrec[i]].copy())
         self.steps += 1
+        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
         w = self.weights
         res = np.empty((8, N))
         t_end = self.loop.time
@@ -594,9 +629,16 @@ class EnvCore:
         }
         if flags & 2:
             info["diverged_message"] = np.array(
-                [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps) or None
-                 for d, t in zip(status[:, ST_DIVERGED], t_end)],
+                [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps, self.controller.name)
+                 or None for d, t in zip(status[:, ST_DIVERGED], t_end)],
                 dtype=object)
+        if flags:
+            # the episode's totals on its last step (Gymnasium's RecordEpisodeStatistics owns
+            # info["episode"]; these are the benchmark's own metrics)
+            em = np.empty(N, dtype=object)
+            for i in np.flatnonzero(terminated | truncated):
+                em[i] = self.episode_metrics(int(i), reason[i], trunc_reason[i])
+            info["episode_metrics"] = em
         if flags:
             self.done[:] = terminated | truncated
         else:
@@ -604,10 +646,34 @@ class EnvCore:
         obs = self.observe(info, t=t_end)
         return obs, rewards, terminated, truncated, info
 
+    def episode_metrics(self, i: int, termination_reason: str | None = None,
+                        truncation_reason: str | None = None) -> dict[str, Any]:
+        """Arm i's episode so far, in the benchmark's terms: RMSE per joint (degrees, over its 1 ms
+        samples, as blf-eval computes it), violating 1 ms samples (any joint), violating integration
+        steps, the first violation (s, on the integration grid, or None), divergence, and how it
+        ended."""
+        ei, ef = self._ep_int[i], self._ep_f[i]
+        samples = float(ef[EP_SAMPLES])
+        rmse = (np.degrees(np.sqrt(ef[EP_E2_JOINT:] / samples)).tolist() if samples > 0 else [None] * self.n)
+        dt = self.sim.dt
+        return {
+            "rmse_deg": rmse,
+            "violating_samples": int(ei[EP_VIOL_SAMPLES]),
+            "violating_steps": int(ei[EP_VIOL_STEPS]),
+            "first_violation_s": None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
+            "diverged": bool(ei[EP_DIV_CODE]),
+            "samples": int(samples),
+            "time_s": float(self.loop.ksteps[i] * dt),
+            "termination_reason": termination_reason,
+            "truncation_reason": truncation_reason,
+        }
+
     def trajectory(self, i: int = 0):
         """Arm i's current episode so far on the 1 ms grid, as a
-        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``)."""
-        from .simulate import CHANNELS, Trajectory
+        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``), with the same counters
+        as the inner path's: violating integration steps, the first one, saturated steps and
+        divergence."""
+        from .simulate import CHANNELS, Trajectory, divergence_message
 
         if not self.record:
             raise ValueError("trajectories are kept only with record=True")
@@ -615,8 +681,17 @@ class EnvCore:
         r = np.concatenate(chunks) if chunks else np.zeros((0, len(CHANNELS), self.n))
         signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
                    for k, name in enumerate(CHANNELS)}
+        ei = self._ep_int[i]
+        dt = self.sim.dt
+        code = int(ei[EP_DIV_CODE])
+        t_div = float(ei[EP_DIV_STEP] * dt) if code else None
         return Trajectory(scenario=self.scenarios[i].name, controller=self.controller.name,
-                          dt=self.sim.dt, signals=signals)
+                          dt=dt, signals=signals, diverged=bool(code), diverged_at=t_div,
+                          step_violations=int(ei[EP_VIOL_STEPS]),
+                          first_violation_step_time=None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
+                          saturated_steps=int(ei[EP_SAT_STEPS]), divergence_code=code,
+                          message=divergence_message(code, t_div or 0.0, dt, self.sim.unstable_steps,
+                                                     self.controller.name) if code else "")
 
     @staticmethod
     def info_row(info: dict[str, Any], i: int) -> dict[str, Any]:

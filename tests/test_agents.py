@@ -142,7 +142,8 @@ def test_eval_cli_end_to_end_with_an_agent(tmp_path, capsys):
                     "--duration", "0.5", "--suite-seeds", "2", "--out", str(out), "--no-progress"])
     assert rc == 0
     data = json.loads((out / "results.json").read_text())
-    assert data["schema_version"] == 1
+    assert data["schema_version"] == 2
+    assert data["provenance"]["versions"]["numpy"] and "command" in data["provenance"]
     recs = data["records"]
     # 3 policies x (2 presets + the suite)
     assert len(recs) == 9
@@ -150,6 +151,14 @@ def test_eval_cli_end_to_end_with_an_agent(tmp_path, capsys):
     assert kinds["proposed"] == "baseline" and kinds["run"] == "residual"
     suite = [r for r in recs if r["scenario"] == "randomized"]
     assert all(r["episodes"] == 2 for r in suite)
+    assert all(r["suite"] == "randomized" and r["suite_seeds"] == [10000, 10001] for r in suite)
+    for r in recs:
+        # the law against itself scores exactly 1; everyone has a score per episode
+        assert len(r["per_episode_score"]) == r["episodes"] and r["score_vs_law"] > 0
+        if r["policy"] == "proposed":
+            assert r["per_episode_score"] == [1.0] * r["episodes"] and r["certificate_broken"] == 0.0
+    agent = [r for r in recs if r["policy"] == "run"]
+    assert all(r["train_seed"] == 0 and r["env_kwargs"]["controller"] == "proposed" for r in agent)
     with open(out / "results.csv") as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 9 and "rmse_deg_3" in rows[0]
@@ -302,7 +311,10 @@ def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
                 "rmse_deg": list(rmse), "violations": list(viol), "violation_fraction": [0.0] * 3,
                 "max_excursion_deg": [0.0] * 3, "min_margin_deg": [1.0] * 3, "first_violation_s": None,
                 "failure_rate": fail, "rmse_cvar_deg": list(rmse), "torque_rms": [1.0] * 3,
-                "torque_peak": [1.0] * 3, "saturated_fraction": [0.0] * 3, "diverged": 0, "wall_s": 0.1}
+                "torque_peak": [1.0] * 3, "saturated_fraction": [0.0] * 3, "diverged": 0, "wall_s": 0.1,
+                "score_vs_law": None, "certificate_broken": None, "law_failure_rate": None,
+                "per_episode_rmse_deg": [list(rmse)], "per_episode_score": None,
+                "per_episode_violations": [int(sum(viol))], "per_episode_failed": [fail > 0]}
 
     records = [rec("proposed", "baseline", (1.0, 2.0, 3.0)),
                rec("res_s0", "residual", (0.9, 1.9, 2.9)),            # beats the law in every joint
@@ -321,6 +333,36 @@ def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
     assert report_main([str(tmp_path / "results.json"), "--out", str(tmp_path / "t.md")]) == 0
     assert "| res | residual | paper-0.1hz | 3 | 0.9000 (0.8000-1.0000)" in (tmp_path / "t.md").read_text()
     assert report_main([str(tmp_path / "none.json")]) == 2
+
+
+def test_report_statistics_are_rliable_s_iqm_and_probability_of_improvement(tmp_path):
+    from scipy.stats import trim_mean
+
+    from agents.report import main as report_main, seed_statistics
+    from blf_gym.metrics import write_results
+
+    rng = np.random.default_rng(0)
+    scores = rng.uniform(0.6, 1.6, size=(5, 8))  # 5 seeds x 8 episodes
+    base = {"kind": "residual", "scenario": "stress", "episodes": 8, "dt": 1e-4, "rmse_deg": [1.0] * 3,
+            "violations": [0] * 3, "violation_fraction": [0.0] * 3, "max_excursion_deg": [0.0] * 3,
+            "min_margin_deg": [1.0] * 3, "first_violation_s": None, "failure_rate": 0.0, "rmse_cvar_deg": 1.0,
+            "torque_rms": [1.0] * 3, "torque_peak": [1.0] * 3, "saturated_fraction": [0.0] * 3,
+            "diverged": False, "wall_s": 0.0, "score_vs_law": 1.0, "certificate_broken": 0.1,
+            "law_failure_rate": 0.0, "per_episode_rmse_deg": [[1.0] * 3] * 8, "per_episode_violations": [0] * 8,
+            "per_episode_failed": [False] * 8}
+    records = [dict(base, policy=f"agent_s{s}", per_episode_score=scores[s].tolist(), train_seed=s) for s in range(5)]
+    (stat,) = seed_statistics(records, reps=2000)
+    # independent references: the 25 % trimmed mean of all scores, and P(score > 1) per episode
+    assert stat["iqm"] == pytest.approx(trim_mean(scores.ravel(), 0.25))
+    assert stat["prob_improvement"] == pytest.approx(np.mean((scores > 1).mean(axis=0)))
+    lo, hi = stat["ci95"]
+    assert lo < stat["iqm"] < hi and hi - lo < 0.5
+    assert stat["seeds"] == [0, 1, 2, 3, 4] and stat["episodes"] == 8
+    write_results(records, tmp_path)
+    assert report_main([str(tmp_path / "results.json")]) == 0
+    data = json.loads((tmp_path / "report.json").read_text())
+    assert data["statistics"][0]["iqm"] == pytest.approx(stat["iqm"])
+    assert {"iqm", "ci95", "prob_improvement"} <= set(data["statistics"][0])
 
 
 def test_linear_schedules_in_configs(tmp_path):

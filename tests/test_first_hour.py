@@ -329,7 +329,7 @@ def test_a_full_disk_or_a_read_only_folder_is_one_line_and_exit_2(tmp_path, caps
     import agents.evaluate as ev
     import baselines.reproduce as rp
 
-    def fail(records, out):
+    def fail(records, out, *meta):
         raise OSError(code, os.strerror(code), str(Path(out) / "results.json"))
 
     monkeypatch.setattr(ev if command == "blf-eval" else rp, "write_results", fail)

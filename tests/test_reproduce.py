@@ -57,7 +57,7 @@ def test_full_run_writes_six_complete_records(full_run):
     rc, out, _, _ = full_run
     assert rc == 0
     data = json.loads((out / "results.json").read_text())
-    assert data["schema_version"] == 1
+    assert data["schema_version"] == 2 and data["provenance"]["versions"]["numba"]
     recs = data["records"]
     assert len(recs) == 6
     assert sorted((r["scenario"], r["policy"]) for r in recs) == sorted(
