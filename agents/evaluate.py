@@ -8,11 +8,15 @@ duration with termination off, and violations are counted.
 
 Examples::
 
-    blf-eval                                             # baselines + shipped agents, paper cases
-    blf-eval --controllers proposed --agents runs/sac/model.zip --suite-seeds 20 --out results/
-    blf-eval --scenario-kwargs '{"payload": 0.15}' --duration 10
+    blf-eval                                             # the protocol: baselines + shipped agents
+    blf-eval --controllers proposed --agents runs/ppo --suite stress --suite-seeds 50 --out results/
+    blf-eval --suite-seeds 0 --scenario-kwargs '{"payload": 0.15}' --duration 10
 
-Writes, with ``--out DIR``: ``results.json`` and ``results.csv`` (SPEC section 8) and PNG plots of
+By default every policy is judged on the benchmark's three scenario groups: the paper presets, 20
+held-out episodes of the training suite (seeds from 10,000) and 50 of the stress suite (seeds from
+20,000, never trained or selected on).
+
+Writes, with ``--out DIR``: ``results.json`` and ``results.csv`` (docs/model.md section 8) and PNG plots of
 the tracking error with its bounds and of the torques, per scenario.
 """
 
@@ -57,15 +61,30 @@ def suite_seed_offset(suite: str) -> int:
     raise ValueError(f"unknown suite {suite!r}; accepted values: {list(SUITES)}")
 
 
+PROTOCOL_SEEDS = {"randomized": 20, "stress": 50}
+"""The benchmark's protocol: the paper presets, 20 held-out episodes of the training suite and 50
+of the stress suite (what ``blf-eval`` runs by default)."""
+
+
 def build_scenarios(
-    presets: Sequence[str], suite_seeds: int, kwargs: dict[str, Any], duration: float | None,
-    suite: str = "randomized",
+    presets: Sequence[str], suite_seeds: "int | Sequence[int]", kwargs: dict[str, Any], duration: float | None,
+    suite: "str | Sequence[str]" = "randomized",
 ) -> list[tuple[str, list[Scenario]]]:
-    """[(scenario label, episodes)]: each preset is one episode; the suite has ``suite_seeds``.
+    """[(scenario label, episodes)]: each preset is one episode; each suite in ``suite`` has its
+    ``suite_seeds`` episodes (one count for all suites, or one per suite).
 
     With variations (``kwargs``) every label gains ``+custom``, so a varied result is never
     mistaken for the plain one; the variations themselves are recorded in each record's
     provenance by blf-eval."""
+    suites = [suite] if isinstance(suite, str) else list(suite)
+    counts = [suite_seeds] * len(suites) if isinstance(suite_seeds, int) else list(suite_seeds)
+    if len(counts) == 1 and len(suites) > 1:
+        counts = counts * len(suites)
+    if len(counts) != len(suites):
+        raise ValueError(f"--suite-seeds needs one count or one per suite ({len(suites)}), got {len(counts)}")
+    for c in counts:
+        if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+            raise ValueError(f"--suite-seeds must be integers >= 0, got {c!r}")
     groups: list[tuple[str, list[Scenario]]] = []
     sim_over = {"duration": duration} if duration is not None else {}
     for name in presets:
@@ -75,15 +94,17 @@ def build_scenarios(
         if kwargs:
             sc = replace(apply_variations(sc, kwargs), name=f"{name}+custom")
         groups.append((sc.name, [sc]))
-    if suite_seeds > 0:
-        offset = suite_seed_offset(suite)
+    for name, count in zip(suites, counts):
+        if count == 0:
+            continue
+        offset = suite_seed_offset(name)
         eps = []
-        for k in range(suite_seeds):
-            sc = sample_suite(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over), suite)
+        for k in range(count):
+            sc = sample_suite(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over), name)
             if kwargs:
                 sc = apply_variations(sc, kwargs)
             eps.append(sc)
-        groups.append((suite + ("+custom" if kwargs else ""), eps))
+        groups.append((name + ("+custom" if kwargs else ""), eps))
     return groups
 
 
@@ -155,11 +176,12 @@ def _parser() -> argparse.ArgumentParser:
                         "ones in agents/pretrained; none with an empty list)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
-    p.add_argument("--suite", default="randomized", choices=SUITES,
-                   help="which suite --suite-seeds draws from: the training suite's held-out seeds, or the "
-                        "stress suite beyond the training ranges (default randomized)")
-    p.add_argument("--suite-seeds", type=int, default=0, metavar="N",
-                   help="also run N episodes of --suite (default 0)")
+    p.add_argument("--suite", nargs="+", default=list(PROTOCOL_SEEDS), choices=SUITES, metavar="SUITE",
+                   help="suites to draw episodes from: randomized (the training suite's held-out seeds) and/or "
+                        "stress (held out, beyond the training ranges) (default: randomized stress)")
+    p.add_argument("--suite-seeds", type=int, nargs="+", default=None, metavar="N",
+                   help="episodes per suite, one count for all or one per --suite; 0 for the presets alone "
+                        "(default: the protocol's 20 randomized and 50 stress, or 20 per suite named)")
     p.add_argument("--scenario-kwargs", type=str, default="{}", metavar="JSON",
                    help='scenario variations applied to every episode, e.g. \'{"payload": 0.15, "force": 20}\' '
                         "(default: none)")
@@ -272,7 +294,11 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    import shlex
+
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    args.command = shlex.join(["blf-eval", *argv])
     try:
         try:
             kwargs = json.loads(args.scenario_kwargs)
@@ -284,9 +310,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         for c in args.controllers:
             if c not in CONTROLLERS:
                 raise ValueError(f"unknown controller {c!r}; accepted values: {list(CONTROLLERS)}")
-        if args.suite_seeds < 0:
-            raise ValueError(f"--suite-seeds must be >= 0, got {args.suite_seeds}")
-        groups = build_scenarios(args.scenarios, args.suite_seeds, kwargs, args.duration, args.suite)
+        seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
+        groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite)
         if not groups:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
@@ -327,7 +352,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     from blf_gym.metrics import provenance
 
     kwargs = kwargs or {}
-    meta_out = provenance(command=" ".join(["blf-eval", *sys.argv[1:]]) if sys.argv else None)
+    meta_out = provenance(command=getattr(args, "command", None))
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
     jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
     law_cache: dict[tuple[str, str], list[Any]] = {}

@@ -2,7 +2,7 @@
 
 A residual agent sees the same outputs as the law, so a useful upper reference is a residual that
 knows what the law cannot: the *true* lumped disturbance. At every agent step this oracle reads
-the privileged x3 (SPEC section 1) and the LESO's x3_hat from ``info`` and holds
+the privileged x3 (docs/model.md section 1) and the LESO's x3_hat from ``info`` and holds
 
     u_residual = -M(q) (x3 - x3_hat)
 

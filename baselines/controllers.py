@@ -41,7 +41,7 @@ class ControllerGains:
     """Diagonal of K2 = 30 diag(1.5, 1.5, 0.5), N m s/rad (each > 0)."""
     barrier_clip: float = 0.95
     """rho in (0, 1): the barrier term is evaluated with |e1| <= rho x bound. 0.95 keeps the
-    closed loop integrable at h = 0.1 ms (SPEC section 5); raise it only with a smaller step."""
+    closed loop integrable at h = 0.1 ms (docs/model.md section 5); raise it only with a smaller step."""
     nominal: ArmParams = field(default_factory=ArmParams)
     """The controller's model of the arm (paper Table 1)."""
 

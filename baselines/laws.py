@@ -7,7 +7,7 @@ the paper as: e1 = q - q_d (tracking error), alpha1 (virtual velocity), e2 = v -
 (Table 2), k_a/k_b (the error bounds), x3_hat (estimated lumped disturbance).
 
 All three share the backstepping core ``u0 = -K2 e2 + C(y, v) alpha1 + G(y) + M(y) alpha1'`` with
-alpha1' computed analytically from the velocity v the law uses (SPEC section 5):
+alpha1' computed analytically from the velocity v the law uses (docs/model.md section 5):
 
 * **BC** (full state, v = true qd): alpha1 = qd_d - K1 e1, u = u0 - e1.
 * **LESOBC** (v = x2_hat): the same, u = u0 - e1 - M x3_hat.
@@ -15,7 +15,7 @@ alpha1' computed analytically from the velocity v the law uses (SPEC section 5):
   lambda1 = sqrt((k_a'/k_a)^2 + (k_b'/k_b)^2), u = u0 - kappa - M x3_hat, with the barrier term
   kappa = (h / (k_a^2 - e^2) + (1 - h) / (k_b^2 - e^2)) e, h = 1 if e1 > 0 else 0.
 
-Barrier guard (SPEC section 5): the barrier is singular at the bound and changes sign beyond it, so
+Barrier guard (docs/model.md section 5): the barrier is singular at the bound and changes sign beyond it, so
 kappa is evaluated with e1 clipped to ``barrier_clip`` times the bound on its side. The law is
 then finite for every finite state, and its stiffness near the bound is limited (the closed loop
 stays integrable with ODE3 at 0.1 ms for barrier_clip = 0.95).

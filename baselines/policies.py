@@ -15,7 +15,7 @@ bounds within a few steps). Without ``env=`` it cannot check, and warns once at 
 ``predict``.
 
 The inner path (``controller=`` in the env, or ``blf_gym.simulate``) evaluates the same compiled
-law at every ODE3 stage instead; the two agree closely but not exactly (SPEC section 6), and the
+law at every ODE3 stage instead; the two agree closely but not exactly (docs/model.md section 6), and the
 evaluation command uses the inner path. BC reads the true velocity, so it needs
 ``privileged=True``.
 """

@@ -1,7 +1,7 @@
 """``blf-reproduce``: the paper's six simulation cases (3 controllers x 0.1/0.5 Hz, 30 s each).
 
 Prints one table of per-joint RMSE beside the paper's Tables 3-4, with constraint violations and
-torques, and with ``--out DIR`` writes ``results.json`` / ``results.csv`` (SPEC section 8) and,
+torques, and with ``--out DIR`` writes ``results.json`` / ``results.csv`` (docs/model.md section 8) and,
 with ``--save-traj``, every trajectory on the 1 ms grid as ``DIR/traj/<scenario>__<controller>.npz``.
 
 Examples::
@@ -157,7 +157,11 @@ def format_table(results: Sequence[tuple[dict[str, Any], Any]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    import shlex
+
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
+    args.command = shlex.join(["blf-reproduce", *argv])
     try:
         _check_names(args.preset, args.controller)
         if args.dt is not None or args.duration is not None:
@@ -184,7 +188,7 @@ def _run(args: argparse.Namespace) -> int:
     def save(pairs: list[tuple[dict[str, Any], Any]]) -> None:
         if args.out is None:
             return
-        write_results([r for r, _ in pairs], args.out, provenance(" ".join(["blf-reproduce", *sys.argv[1:]])))
+        write_results([r for r, _ in pairs], args.out, provenance(args.command))
         if args.save_traj:
             for rec, tr in pairs:
                 key = (rec["scenario"], rec["policy"])

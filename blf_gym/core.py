@@ -398,7 +398,7 @@ class EnvCore:
         self.base = apply_variations(base, self.variations) if self.variations else base
         self.suite = suite
         self.sim = self.base.sim
-        # agent period (SPEC section 6): a whole number of integration steps that is either a
+        # agent period (docs/model.md section 6): a whole number of integration steps that is either a
         # whole number of 1 ms samples or divides 1 ms (down to a single step, for sampled
         # controllers such as the baseline policies)
         control_period = check_real(o, "control_period", control_period, lo=0.0, hi=self.sim.duration,

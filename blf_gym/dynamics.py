@@ -15,7 +15,7 @@ Derivation used here (generic in n, O(n^2) per call). With T the lower-triangula
 * the end-effector pose (x, y, phi) has Jacobian rows -sum_{j>=a} l_j sin theta_j,
   sum_{j>=a} l_j cos theta_j and 1.
 
-For 3 links this equals the paper's Appendix A once its typos are fixed (see SPEC section 1 and
+For 3 links this equals the paper's Appendix A once its typos are fixed (see docs/model.md section 1 and
 ``tests/test_dynamics.py``), and it matches Pinocchio's CRBA and RNEA.
 
 The ``*_into`` functions are compiled (numba, cached to disk) and write into caller-provided

@@ -360,7 +360,7 @@ class BoundParams:
 
 @dataclass(frozen=True)
 class SimParams:
-    """Integration and actuator settings (SPEC section 6)."""
+    """Integration and actuator settings (docs/model.md section 6)."""
 
     dt: float = 1e-4
     """ODE3 (Bogacki-Shampine) step h, s. Must divide ``sample_period``. The paper's 1 ms diverges

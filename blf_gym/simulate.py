@@ -6,7 +6,7 @@ over threads: the compiled kernel releases the GIL). It is specialised per (cont
 observer) pair by cloning the template functions below with the law and observer bound as
 globals, then compiled by numba with ``cache=True`` so a warm start loads machine code from disk.
 
-Integration (SPEC section 6): Bogacki-Shampine ODE3, fixed step h, with the law and the observer
+Integration (docs/model.md section 6): Bogacki-Shampine ODE3, fixed step h, with the law and the observer
 evaluated at every stage on the measured angles y = q(stage) + noise (the noise sample is held
 over a step). Constraints are checked after every step; trajectories and metrics use the 1 ms
 grid. A step outside ODE3's stability region is detected from the method's embedded error
@@ -632,7 +632,7 @@ class SimulationDiverged(RuntimeError):
 
 @dataclass
 class Trajectory:
-    """Signals of one run on the 1 ms grid (SPEC section 8), plus how the run ended.
+    """Signals of one run on the 1 ms grid (docs/model.md section 8), plus how the run ended.
 
     Every array has the sample axis first; joint signals are (samples, n). ``u`` is the torque
     commanded to the actuators (law + residual, after the limit), ``h_u`` what the dead-zone passes,

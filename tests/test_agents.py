@@ -139,7 +139,8 @@ def test_eval_cli_end_to_end_with_an_agent(tmp_path, capsys):
                        str(_tiny(tmp_path, "td3")), "--out", str(run), "--no-progress"]) == 0
     out = tmp_path / "eval"
     rc = eval_main(["--controllers", "proposed", "lesobc", "--agents", str(run / "model.zip"),
-                    "--duration", "0.5", "--suite-seeds", "2", "--out", str(out), "--no-progress"])
+                    "--duration", "0.5", "--suite", "randomized", "--suite-seeds", "2", "--out", str(out),
+                    "--no-progress"])
     assert rc == 0
     data = json.loads((out / "results.json").read_text())
     assert data["schema_version"] == 2

@@ -31,7 +31,7 @@ def test_proposed_law_never_leaves_the_bounds(paper_runs, name):
 
 
 def test_the_comparison_has_the_shape_spec_section_7_describes(paper_runs):
-    # SPEC section 7 (an independent prototype): observer-based laws track to hundredths or tenths of
+    # docs/model.md section 7 (an independent prototype): observer-based laws track to hundredths or tenths of
     # a degree; LESOBC breaks the bounds at 0.5 Hz; BC breaks them at 0.5 Hz.
     rm = {k: np.array(summarize([t], k[1], "baseline", k[0], t.dt)["rmse_deg"]) for k, t in paper_runs.items()}
     assert np.all(rm[("paper-0.1hz", "proposed")] < 0.2)
@@ -108,7 +108,7 @@ def _excursion_run(amplitude: float, joint: int = 2):
 
 
 def test_barrier_guard_survives_an_error_forced_to_099_of_a_bound():
-    # Find a pulse that takes the error to at least 0.99 of the bound (SPEC section 5), doubling it.
+    # Find a pulse that takes the error to at least 0.99 of the bound (docs/model.md section 5), doubling it.
     amp = 0.5
     for _ in range(16):
         ratio, diverged, r, loop = _excursion_run(amp)
@@ -155,7 +155,7 @@ def test_paper_step_of_1ms_is_reported_as_divergence():
 def test_divergence_kinds_and_state_never_holds_nan(max_torque, code):
     # With the default actuator limit an unstable step stays finite and is caught by the error
     # estimate (code 2); with an effectively unbounded actuator, as in the paper, the state blows up
-    # within a few steps (code 1, SPEC section 6: "every controller ... blow up within 3 ms").
+    # within a few steps (code 1, docs/model.md section 6: "every controller ... blow up within 3 ms").
     sc = preset("paper-0.5hz", dt=1e-3, max_torque=max_torque)
     loop = ClosedLoop([sc], "lesobc", threads=1)
     _, _, st = loop.advance(1000)

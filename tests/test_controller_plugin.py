@@ -35,7 +35,7 @@ def pd_gravity_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u_out, 
 
 
 def _gravity_by_hand(q: np.ndarray, arm: ArmParams = ArmParams()) -> np.ndarray:
-    """G(q) = dV/dq for point masses at the distal link ends (SPEC section 1), one config per row.
+    """G(q) = dV/dq for point masses at the distal link ends (docs/model.md section 1), one config per row.
 
     V = g sum_i m_i y_i with y_i = sum_{j<=i} l_j sin(theta_j), theta_j = q_1 + ... + q_j, so
     dV/dq_k = g sum_{j>=k} l_j cos(theta_j) sum_{i>=j} m_i.

@@ -1,4 +1,4 @@
-"""Tests of blf_gym.dynamics: the n-link planar arm with point masses (SPEC section 1).
+"""Tests of blf_gym.dynamics: the n-link planar arm with point masses (docs/model.md section 1).
 
 Every check compares the library against something built independently here: structural
 identities of Lagrangian mechanics (SPD inertia, skew-symmetry, Christoffel symbols from finite
@@ -184,7 +184,7 @@ def appendix_a(q: np.ndarray, qd: np.ndarray, arm: ArmParams):
     standard planar form (e.g. M11 = m1 l1^2 + m2(l1^2 + l2^2 + 2 l1 l2 c2) + m3(l1^2 + l2^2 +
     l3^2 + 2 l1 l2 c2 + 2 l2 l3 c3 + 2 l1 l3 c23)) and C's entries equal the Christoffel-symbol
     entries derived term by term from that M. The printed structure is kept (not simplified) so
-    that this is the Appendix itself, with SPEC section 1's typo fixes:
+    that this is the Appendix itself, with docs/model.md section 1's typo fixes:
       * M12: ``c3 (l2 + l1 c2)`` where the paper prints ``c2 (l2 + l1 c2)``;
       * C11: first term ``qd2 l1 l3 m3 s23`` (printed ``l1 l2``), third ``qd2 l1 l2 (m2 + m3) s2``
         (printed ``m3`` only).

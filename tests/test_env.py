@@ -199,7 +199,7 @@ def test_zero_residual_reproduces_simulate_bit_for_bit(scenario, controller):
     assert info["time"] == pytest.approx(traj.t[-1] + 1e-3)
     assert violating == mask.sum()
     if controller == "lesobc":
-        assert violating > 0  # SPEC section 7: LESOBC breaks the bounds at 0.5 Hz, so the count is tested
+        assert violating > 0  # docs/model.md section 7: LESOBC breaks the bounds at 0.5 Hz, so the count is tested
 
 
 # --------------------------------------------------------------------------------------------
@@ -417,7 +417,7 @@ def test_observer_is_fed_the_applied_torque():
     """A constant 1 N m residual on joint 3 is part of the applied u the LESO sees, so the lumped
     disturbance estimate does not absorb it. An observer fed only u_law would see an extra
     (M^-1 [0, 0, 1])_3 >= 1 / M33 ~ 444 rad/s^2 of 'disturbance' on joint 3 (M33 = 0.00225 kg m^2,
-    SPEC section 6) and its estimate would settle that far from x3."""
+    docs/model.md section 6) and its estimate would settle that far from x3."""
     errs = {}
     for a3 in (0.0, 1.0):
         env = gym.make("PlanarBLFResidual-v0", residual_scale=1.0, duration=0.5)

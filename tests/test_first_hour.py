@@ -234,7 +234,8 @@ def test_blf_eval_takes_a_run_folder(tmp_path, capsys):
     assert _train("--timesteps", "100", "--config", _cfg(tmp_path, 100_000), "--out", str(run)) == 0
     _, meta, norm = load_agent(run)
     assert meta["name"] == "run" and norm is not None
-    assert eval_main(["--controllers", "--agents", str(run), "--duration", "0.2", "--no-progress"]) == 0
+    assert eval_main(["--controllers", "--agents", str(run), "--duration", "0.2", "--suite-seeds", "0",
+                      "--no-progress"]) == 0
     assert "run " in capsys.readouterr().out
     with pytest.raises(ValueError, match="no model.zip"):
         load_agent(tmp_path)
@@ -314,7 +315,8 @@ def test_an_out_that_is_a_file_is_one_line_and_exit_2(tmp_path, capsys, command)
     target = tmp_path / "afile"
     target.write_text("x")
     main = eval_main if command == "blf-eval" else reproduce_main
-    args = (["--controllers", "proposed", "--agents"] if command == "blf-eval" else ["--controller", "proposed"])
+    args = (["--controllers", "proposed", "--agents", "--suite-seeds", "0"] if command == "blf-eval"
+            else ["--controller", "proposed"])
     assert main([*args, "--duration", "0.01", "--out", str(target), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and str(target) in err and "Traceback" not in err
@@ -334,7 +336,8 @@ def test_a_full_disk_or_a_read_only_folder_is_one_line_and_exit_2(tmp_path, caps
 
     monkeypatch.setattr(ev if command == "blf-eval" else rp, "write_results", fail)
     main = ev.main if command == "blf-eval" else rp.main
-    args = (["--controllers", "proposed", "--agents"] if command == "blf-eval" else ["--controller", "proposed"])
+    args = (["--controllers", "proposed", "--agents", "--suite-seeds", "0"] if command == "blf-eval"
+            else ["--controller", "proposed"])
     assert main([*args, "--duration", "0.01", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(tmp_path / "o" / "results.json") in err[0] and hint in err[0]

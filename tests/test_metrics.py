@@ -1,6 +1,6 @@
-"""The results record (SPEC section 8) from hand-built trajectories, and results.json / .csv I/O.
+"""The results record (docs/model.md section 8) from hand-built trajectories, and results.json / .csv I/O.
 
-Every expected value is computed here from the definitions in SPEC section 8 with plain Python
+Every expected value is computed here from the definitions in docs/model.md section 8 with plain Python
 loops (math module), independently of blf_gym.metrics' vectorised code; a few are also written
 out as literals with the arithmetic in a comment.
 """
@@ -17,7 +17,7 @@ import pytest
 
 from blf_gym.metrics import read_results, summarize, violation_mask, write_results
 
-# SPEC section 8, copied from its table (not imported from the code under test)
+# docs/model.md section 8, copied from its table (not imported from the code under test)
 SPEC_FIELDS = (
     "policy", "kind", "scenario", "episodes", "dt", "rmse_deg", "violations", "violation_fraction",
     "max_excursion_deg", "min_margin_deg", "first_violation_s", "failure_rate", "rmse_cvar_deg",
@@ -105,7 +105,7 @@ def _sig(ep):
 
 
 def _hand_record(episodes):
-    """SPEC section 8 by loops over samples; bounds from the open interval (-k_b, k_a)."""
+    """docs/model.md section 8 by loops over samples; bounds from the open interval (-k_b, k_a)."""
     n = 3
     sq = [0.0] * n
     count = 0

@@ -72,7 +72,7 @@ def test_sim_rejects_non_positive_dt(dt):
 
 @pytest.mark.parametrize("dt", [3e-4, 7e-5, 1.5e-3, 2e-3])
 def test_sim_rejects_dt_not_dividing_1ms(dt):
-    # 1 ms / dt must be a whole number >= 1 (metrics are sampled on a 1 ms grid, SPEC 6).
+    # 1 ms / dt must be a whole number >= 1 (metrics are sampled on a 1 ms grid, docs/model.md section 6).
     with pytest.raises(ValueError, match=r"SimParams\.dt"):
         SimParams(dt=dt)
 

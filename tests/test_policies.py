@@ -30,7 +30,7 @@ def _policy_run(name: str, scenario: str, duration: float):
                                             ("lesobc", "paper-0.1hz"), ("bc", "paper-0.1hz")])
 def test_sampled_policy_matches_the_inner_path(name, scenario):
     # The policy holds its torque over 0.1 ms and integrates its own LESO with the measurement
-    # held; the inner path evaluates the law at every ODE3 stage. SPEC section 6 puts the
+    # held; the inner path evaluates the law at every ODE3 stage. docs/model.md section 6 puts the
     # difference between the two systems at the size of the 0.1 Hz RMSE itself, so the stated
     # tolerance is a factor of 1.25 per joint (measured: within 3 %).
     duration = 2.0

@@ -1,8 +1,8 @@
-"""Tests of blf_gym.reference.joint_reference: the paper's circle by inverse kinematics (SPEC 2).
+"""Tests of blf_gym.reference.joint_reference: the paper's circle by inverse kinematics (docs/model.md section 2).
 
 References used here are independent of the library: the Cartesian circle itself (through a
-forward kinematics written in this file), SPEC section 2's closed form of the smooth branch,
-finite differences of the returned angles and velocities, and SPEC's measured maxima.
+forward kinematics written in this file), docs/model.md section 2's closed form of the smooth branch,
+finite differences of the returned angles and velocities, and docs/model.md's measured maxima.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from blf_gym.params import preset
 from blf_gym.reference import joint_reference
 
 PRESETS = ["paper-0.1hz", "paper-0.5hz"]
-# k of SPEC section 2: cos(q2 / 2) = k cos(pi f t) on the smooth branch (law of cosines).
+# k of docs/model.md section 2: cos(q2 / 2) = k cos(pi f t) on the smooth branch (law of cosines).
 K_FOLD = np.sqrt(0.1 / 0.21)
 
 
@@ -80,7 +80,7 @@ def test_output_shapes_follow_t():
 
 @pytest.mark.parametrize("name", PRESETS)
 def test_smooth_branch_matches_spec_closed_form(name):
-    """SPEC 2: q2 = 2 acos(k cos(pi f t)), q1 = atan2(w) - atan2(l2 s2, l1 + l2 c2), q3 = -q1 - q2."""
+    """docs/model.md section 2: q2 = 2 acos(k cos(pi f t)), q1 = atan2(w) - atan2(l2 s2, l1 + l2 c2), q3 = -q1 - q2."""
     sc = scenario(name)
     f = sc.reference.frequency
     l1, l2, l3 = sc.arm.lengths
@@ -130,7 +130,7 @@ def test_smooth_branch_is_continuous_across_folds(name):
     tf = folds(f)
     before = joint_reference(tf - eps, sc)
     after = joint_reference(tf + eps, sc)
-    # Peaks of the next derivative bound the change over 2 eps: SPEC 2 for qd and qdd; |q'''| is
+    # Peaks of the next derivative bound the change over 2 eps: docs/model.md section 2 for qd and qdd; |q'''| is
     # ~1e4 at 0.5 Hz (from the FD error budget below) and scales as f^3, so ~90 at 0.1 Hz.
     peak_qd, peak_qdd, peak_qddd = (5.6, 10.5, 200.0) if f < 0.3 else (28.0, 260.0, 2e4)
     for a, b, bound in zip(before, after, (peak_qd, peak_qdd, peak_qddd)):
@@ -165,7 +165,7 @@ def test_smooth_branch_peaks_match_spec(name, max_qd, max_qdd):
     sc = scenario(name)
     f = sc.reference.frequency
     # One period (2/f) sampled at 1e-4 of it: the peaks are smooth maxima, so the grid misses them
-    # by a relative O((pi * 1e-4)^2), far below the 2% tolerance given to SPEC's rounded values.
+    # by a relative O((pi * 1e-4)^2), far below the 2% tolerance given to docs/model.md's rounded values.
     t = np.linspace(0.0, 2.0 / f, 20001)
     _, qd, qdd = joint_reference(t, sc)
     assert np.abs(qd).max() == pytest.approx(max_qd, rel=0.02)
@@ -197,7 +197,7 @@ def test_standard_branch_range_and_velocity_jump_at_fold(name):
     slope = 2 * K_FOLD * np.pi * f
     assert left[1] == pytest.approx(slope, abs=1e-4 * (1 + 10 * f))
     assert right[1] == pytest.approx(-slope, abs=1e-4 * (1 + 10 * f))
-    # The jump reaches ~6 rad/s (0.1 Hz) / ~30 rad/s (0.5 Hz) on q3 (SPEC: "up to 30 rad/s").
+    # The jump reaches ~6 rad/s (0.1 Hz) / ~30 rad/s (0.5 Hz) on q3 (docs/model.md: "up to 30 rad/s").
     assert np.abs(right - left).max() > 50 * f
     # The analytic velocities agree with those one-sided slopes on each side.
     _, qd, _ = joint_reference(np.array([tf - 1e-6, tf + 1e-6]), sc)

@@ -21,7 +21,7 @@ import pytest
 
 from baselines.reproduce import main
 
-# SPEC section 8, copied from its table (not imported from the code under test)
+# docs/model.md section 8, copied from its table (not imported from the code under test)
 SPEC_FIELDS = (
     "policy", "kind", "scenario", "episodes", "dt", "rmse_deg", "violations", "violation_fraction",
     "max_excursion_deg", "min_margin_deg", "first_violation_s", "failure_rate", "rmse_cvar_deg",
@@ -31,7 +31,7 @@ PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg"
              "torque_rms", "torque_peak", "saturated_fraction")
 PRESETS = ("paper-0.1hz", "paper-0.5hz")
 CONTROLLERS = ("bc", "lesobc", "proposed")
-# SPEC section 8: the trajectory channels (q_d is recorded as q_ref, the bounds as k_a / k_b)
+# docs/model.md section 8: the trajectory channels (q_d is recorded as q_ref, the bounds as k_a / k_b)
 TRAJ_ARRAYS = ("t", "q", "q_ref", "e1", "k_a", "k_b", "u", "h_u", "x3", "x3_hat", "x2_hat", "qd")
 
 
@@ -68,7 +68,7 @@ def test_full_run_writes_six_complete_records(full_run):
             assert isinstance(r[f], list) and len(r[f]) == 3, f
         assert r["kind"] == "baseline"
         assert r["episodes"] == 1
-        assert r["dt"] == 1e-4  # the default step (SPEC section 6)
+        assert r["dt"] == 1e-4  # the default step (docs/model.md section 6)
         assert r["diverged"] is False
         assert r["failure_rate"] in (0.0, 1.0)
         assert r["wall_s"] >= 0.0
@@ -91,7 +91,7 @@ def test_saved_trajectories_match_the_records(full_run):
             for name in TRAJ_ARRAYS[1:]:
                 assert z[name].shape == (1000, 3), name
             np.testing.assert_allclose(z["e1"], z["q"] - z["q_ref"], rtol=0, atol=1e-15)
-            # the record is a function of the saved signals (SPEC section 8 definitions)
+            # the record is a function of the saved signals (docs/model.md section 8 definitions)
             e1 = z["e1"]
             np.testing.assert_allclose(r["rmse_deg"], np.degrees(np.sqrt(np.mean(e1 ** 2, axis=0))),
                                        rtol=1e-10)

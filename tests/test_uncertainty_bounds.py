@@ -1,7 +1,7 @@
 """Tests of the input dead-zone (paper eq. 3) and the time-varying error bounds (eq. 17).
 
-SPEC section 1: H(tau) = 1.0 (tau - 0.2) for tau >= 0.2, 0 inside (-0.2, 0.2), 1.2 (tau + 0.2)
-for tau <= -0.2. SPEC section 3: k_a = 0.5 e^{-0.6 t} + 0.02, k_b = 0.6 e^{-0.6 t} + 0.04.
+docs/model.md section 1: H(tau) = 1.0 (tau - 0.2) for tau >= 0.2, 0 inside (-0.2, 0.2), 1.2 (tau + 0.2)
+for tau <= -0.2. docs/model.md section 3: k_a = 0.5 e^{-0.6 t} + 0.02, k_b = 0.6 e^{-0.6 t} + 0.04.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ def test_dead_zone_is_zero_inside_the_break_points():
 def test_dead_zone_slopes_outside():
     right = np.linspace(0.2, 50.0, 1001)
     left = np.linspace(-50.0, -0.2, 1001)
-    # Straight from SPEC's formula; one multiply and one subtract per value, so round-off only.
+    # Straight from docs/model.md's formula; one multiply and one subtract per value, so round-off only.
     np.testing.assert_allclose(dead_zone_array(right), 1.0 * (right - 0.2), rtol=1e-15, atol=1e-15)
     np.testing.assert_allclose(dead_zone_array(left), 1.2 * (left + 0.2), rtol=1e-15, atol=1e-15)
     # Slopes measured by differences well away from the break points.
