@@ -41,7 +41,14 @@ from .loading import load_agent  # the one agent loader, re-exported here
 
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "build_scenarios", "load_agent"]
 
-CONTROLLERS = ("bc", "lesobc", "proposed")
+
+
+def registered_controllers() -> list[str]:
+    """The inner controllers registered in the ``blf_gym.controllers`` entry-point group."""
+    from blf_gym.controller import available_controllers
+
+    return [c for c in available_controllers() if c != "none"]
+
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
@@ -108,11 +115,12 @@ def build_scenarios(
     return groups
 
 
-def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int | None = None):
+def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int | None = None,
+                        observer: str = "leso"):
     """Trajectories of a baseline controller on the inner path, one per scenario."""
     from blf_gym.simulate import simulate_batch
 
-    return simulate_batch(scenarios, name, noise_seeds=[EVAL_SEED_OFFSET + i for i in range(len(scenarios))],
+    return simulate_batch(scenarios, name, observer, noise_seeds=[EVAL_SEED_OFFSET + i for i in range(len(scenarios))],
                           threads=threads)
 
 
@@ -169,8 +177,11 @@ def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = N
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--controllers", nargs="*", default=list(CONTROLLERS), metavar="NAME",
-                   help=f"baseline controllers to score (default: {' '.join(CONTROLLERS)}; none with an empty list)")
+    p.add_argument("--controllers", nargs="*", default=None, metavar="NAME",
+                   help=f"baseline controllers to score on the inner path (default: every registered one, "
+                        f"here {' '.join(registered_controllers())}; none with an empty list)")
+    p.add_argument("--observer", default="leso", metavar="NAME",
+                   help="observer of the baseline controllers (a registered plug-in; default leso)")
     p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
                    help="trained agents: blf-train run folders or their model zips (default: the shipped "
                         "ones in agents/pretrained; none with an empty list)")
@@ -307,9 +318,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                              '\'{"payload": 0.15}\'') from exc
         if not isinstance(kwargs, dict):
             raise ValueError("--scenario-kwargs must be a JSON object")
+        if args.controllers is None:
+            args.controllers = registered_controllers()
         for c in args.controllers:
-            if c not in CONTROLLERS:
-                raise ValueError(f"unknown controller {c!r}; accepted values: {list(CONTROLLERS)}")
+            if c not in registered_controllers():
+                raise ValueError(f"unknown controller {c!r}; accepted values: {registered_controllers()}")
+        from blf_gym.controller import available_observers
+
+        if args.observer not in available_observers():
+            raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")
         seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
         groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite)
         if not groups:
@@ -378,11 +395,12 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 if bar is not None:
                     bar.set_postfix_str(f"{name} / {label}")
                 t0 = time.perf_counter()
-                trajs = (evaluate_controller(name, scs, args.threads) if agent is None
+                trajs = (evaluate_controller(name, scs, args.threads, args.observer) if agent is None
                          else evaluate_agent(*agent, scs, args.threads))
                 wall = time.perf_counter() - t0
                 meta = None if agent is None else agent[1]
-                law = trajs if (agent is None and name == "proposed") else law_for(label, scs, meta)
+                law = (trajs if (agent is None and name == "proposed" and args.observer == "leso")
+                       else law_for(label, scs, meta))
                 prov = _group_provenance(label, scs, args, kwargs)
                 if meta is not None:
                     prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"))

@@ -18,23 +18,30 @@ import pickle
 from pathlib import Path
 from typing import Any
 
-__all__ = ["algorithm_class", "load_agent"]
+__all__ = ["algorithm_class", "available_algorithms", "load_agent"]
+
+
+def available_algorithms() -> list[str]:
+    """Training algorithms registered in the ``blf_gym.algorithms`` entry-point group."""
+    from importlib.metadata import entry_points
+
+    return sorted(ep.name for ep in entry_points(group="blf_gym.algorithms"))
 
 
 def algorithm_class(name: str):
-    """The SB3 (or sb3-contrib) class of a training algorithm name."""
-    import stable_baselines3 as sb3
+    """The class (SB3-style: learn, save, load, predict) registered as ``name`` in the
+    ``blf_gym.algorithms`` entry-point group. A new algorithm is one registration there."""
+    from importlib.metadata import entry_points
 
-    if name == "tqc":
-        try:
-            from sb3_contrib import TQC
-        except ImportError as exc:
-            raise ValueError("algorithm tqc needs sb3-contrib (pip install sb3-contrib)") from exc
-        return TQC
-    algos = {"ppo": sb3.PPO, "sac": sb3.SAC, "td3": sb3.TD3}
-    if name not in algos:
-        raise ValueError(f"unknown algorithm {name!r}; accepted values: {sorted([*algos, 'tqc'])}")
-    return algos[name]
+    eps = {ep.name: ep for ep in entry_points(group="blf_gym.algorithms")}
+    if name not in eps:
+        raise ValueError(f"unknown algorithm {name!r}; accepted values: {sorted(eps)} (registered in the "
+                         "blf_gym.algorithms entry-point group; reinstall the project if this list is empty)")
+    try:
+        return eps[name].load()
+    except ImportError as exc:
+        raise ValueError(f"algorithm {name!r} is registered as {eps[name].value} but cannot be imported ({exc}); "
+                         f"install the package that provides it (tqc: pip install sb3-contrib)") from exc
 
 
 def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:

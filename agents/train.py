@@ -41,7 +41,6 @@ from blf_gym.io import atomic_write_json
 __all__ = ["main", "load_config", "train"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-ALGOS = ("ppo", "sac", "td3", "tqc")
 MODES = ("plain", "residual")
 ENV_IDS = {"plain": "PlanarBLF-v0", "residual": "PlanarBLFResidual-v0"}
 ENV_KEYS = ("control_period", "residual_scale", "privileged", "reward_weights", "angle_noise_std",
@@ -221,7 +220,8 @@ def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -
     """The run's own settings for ``--resume``; an explicit option that contradicts them is refused."""
     env_kwargs = meta.get("env_kwargs") or {}
     recorded = {"algo": meta.get("algo"), "mode": meta.get("mode"), "controller": env_kwargs.get("controller"),
-                "scenario": env_kwargs.get("scenario"), "seed": meta.get("seed")}
+                "scenario": env_kwargs.get("scenario"), "seed": meta.get("seed"),
+                "observer": env_kwargs.get("observer", "leso")}
     for key, value in given.items():
         if value is not None and recorded.get(key) is not None and value != recorded[key]:
             raise ValueError(f"--{key} {value} differs from the run's {recorded[key]!r} ({where}); "
@@ -243,6 +243,7 @@ def train(
     progress: bool = True,
     name: str | None = None,
     command: str | None = None,
+    observer: str | None = None,
 ) -> Path:
     """Train (or resume, or extend) one agent; returns the run folder. See the module docstring.
 
@@ -259,7 +260,8 @@ def train(
                          "to extend it), or choose another --out")
     if resume and prior is None and not ckpt_dir.is_dir():
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
-    given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed}
+    given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
+             "observer": observer}
     if resume and prior is not None:
         given = _resume_settings(prior, given, meta_path)
         if given["mode"] == "plain":
@@ -268,18 +270,24 @@ def train(
     mode = given["mode"] or "residual"
     controller, scenario = given["controller"], given["scenario"] or "paper-0.1hz"
     seed = 0 if given["seed"] is None else given["seed"]
+    observer = given["observer"] or "leso"
     if timesteps is None:
         timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
-    if algo not in ALGOS:
-        raise ValueError(f"unknown algo {algo!r}; accepted values: {list(ALGOS)}")
+    from .loading import available_algorithms
+
+    if algo not in available_algorithms():
+        raise ValueError(f"unknown algo {algo!r}; accepted values: {available_algorithms()}")
     if mode not in MODES:
         raise ValueError(f"unknown mode {mode!r}; accepted values: {list(MODES)}")
     if isinstance(timesteps, bool) or not isinstance(timesteps, int) or timesteps < 1:
         raise ValueError(f"timesteps must be an integer >= 1, got {timesteps!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    from blf_gym.controller import available_controllers
+    from blf_gym.controller import available_controllers, available_observers
     from blf_gym.scenarios import resolve_scenario
+
+    if observer not in available_observers():
+        raise ValueError(f"unknown observer {observer!r}; accepted values: {available_observers()}")
 
     if mode == "plain" and controller is not None:
         raise ValueError("--controller applies to --mode residual only (plain mode has no inner law)")
@@ -304,6 +312,8 @@ def train(
     env_kwargs: dict[str, Any] = {"scenario": scenario, **(cfg.get("env") or {})}
     if mode == "residual":
         env_kwargs["controller"] = controller
+    if observer != "leso":
+        env_kwargs["observer"] = observer
     normalize = bool(cfg.get("normalize"))
 
     import torch
@@ -470,13 +480,17 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="With --resume, the run's own algo, mode, controller, scenario, seed and "
                                        "config are used (an option that contradicts them is refused).")
-    p.add_argument("--algo", default=None, choices=ALGOS,
+    from .loading import available_algorithms
+
+    p.add_argument("--algo", default=None, choices=available_algorithms(),
                    help="SB3 algorithm (default ppo; tqc needs sb3-contrib; ppo has the tuned residual config)")
     p.add_argument("--mode", default=None, choices=MODES,
                    help="plain: the action is the torque; residual: added to the inner law (default residual)")
     p.add_argument("--controller", default=None, metavar="NAME",
                    help="inner law in residual mode: bc, lesobc, proposed or a registered plug-in "
                         "(default proposed)")
+    p.add_argument("--observer", default=None, metavar="NAME",
+                   help="observer plug-in of the env (registered in blf_gym.observers; default leso)")
     p.add_argument("--scenario", default=None, metavar="NAME",
                    help="training scenario: paper-0.1hz, paper-0.5hz or randomized (default paper-0.1hz)")
     p.add_argument("--timesteps", type=int, default=None, metavar="N",
@@ -506,7 +520,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         out = train(args.algo, args.mode, args.controller, args.scenario, args.timesteps, args.seed,
                     args.config, args.out, args.resume, not args.no_progress, args.name,
-                    command=shlex.join(["blf-train", *argv]))
+                    command=shlex.join(["blf-train", *argv]), observer=args.observer)
     except ValueError as exc:
         print(f"blf-train: error: {exc}", file=sys.stderr)
         return 2

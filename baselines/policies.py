@@ -31,12 +31,10 @@ from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_i
 from blf_gym.params import BoundParams
 
 from .controllers import ControllerGains, ObserverGains
-from .laws import bc_law, lesobc_law, proposed_law
 from .leso import _leso_ode3
 
 __all__ = ["BaselinePolicy"]
 
-_LAWS = {"bc": bc_law, "lesobc": lesobc_law, "proposed": proposed_law}
 _N = 3
 _IDX = observation_index(_N)
 _Y, _QD_REF, _QD_D, _QDD_D = _IDX["y"], _IDX["q_d"], _IDX["qd_d"], _IDX["qdd_d"]
@@ -64,21 +62,28 @@ class BaselinePolicy:
         bounds: BoundParams | None = None,
         env: Any = None,
     ) -> None:
-        if controller not in _LAWS:
-            raise ValueError(f"unknown controller {controller!r}; accepted values: {sorted(_LAWS)}")
+        from dataclasses import fields as _fields
+
+        from blf_gym.controller import available_controllers, make_controller
+
+        names = [c for c in available_controllers() if c != "none"]
+        if controller not in names:
+            raise ValueError(f"unknown controller {controller!r}; accepted values: {names}")
         if not (np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt must be a positive number of seconds, got {dt!r}")
         if not (np.isfinite(max_torque) and max_torque > 0):
             raise ValueError(f"max_torque must be a positive number of N m, got {max_torque!r}")
         self.name = controller
-        self.law = _LAWS[controller]
         self.gains = gains or ControllerGains()
+        # the registered plug-in, built with these gains: its compiled law and packed gains
+        self.inner = make_controller(controller, **{f.name: getattr(self.gains, f.name) for f in _fields(self.gains)})
+        self.law = self.inner.law
         self.obs_gains = observer or ObserverGains()
         self.bounds = bounds or BoundParams()
         self.dt = float(dt)
         self.max_torque = float(max_torque)
-        self._packed_gains = self.gains.pack()
-        self._nominal = self.gains.nominal.pack()
+        self._packed_gains = self.inner.gains
+        self._nominal = self.inner.nominal.pack()
         self._k0 = np.array([self.obs_gains.k0])
         self._model = np.empty(model_length(_N))
         self._work = np.empty(work_length(_N))
@@ -140,9 +145,10 @@ class BaselinePolicy:
             kad, kbd = float(obs[i, _KAD]), float(obs[i, _KBD])
             r = self.bounds.decay_rate  # exponential bounds: k'' = -r k'
             bnd[:] = (ka, kad, -r * kad, kb, kbd, -r * kbd)
-            if self.name == "bc":
+            if self.inner.full_state:
                 if obs.shape[1] < _QD_TRUE.stop:
-                    raise ValueError("BC reads the true velocity: make the env with privileged=True")
+                    raise ValueError(f"{self.name} reads the true velocity (a full-state law): make the env with "
+                                     "privileged=True")
                 qd = _unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
             else:
                 qd = np.zeros(_N)

@@ -170,6 +170,11 @@ def available_controllers() -> list[str]:
     return ["none", *sorted(_group("blf_gym.controllers"))]
 
 
+def available_observers() -> list[str]:
+    """Names accepted by :func:`make_observer` (the registered plug-ins)."""
+    return sorted(_group("blf_gym.observers"))
+
+
 def make_controller(spec: "str | InnerController", **kwargs: Any) -> InnerController:
     """An :class:`InnerController` from a registered name (``bc``, ``lesobc``, ``proposed``,
     ``none``) or an existing object. ``kwargs`` go to the plug-in's factory (e.g. gains)."""
@@ -195,6 +200,8 @@ def make_controller(spec: "str | InnerController", **kwargs: Any) -> InnerContro
 def make_observer(spec: "str | Observer" = "leso", **kwargs: Any) -> Observer:
     """An :class:`Observer` from a registered name (``leso``) or an existing object."""
     if isinstance(spec, Observer):
+        if kwargs:
+            raise ValueError("keyword arguments only apply when the observer is given by name")
         return spec
     eps = _group("blf_gym.observers")
     if spec not in eps:

@@ -13,7 +13,15 @@ import numpy as np
 from numba import njit
 
 from .bounds import bounds_into
-from .controller import NO_CONTROLLER, InnerController, available_controllers, make_controller
+from .controller import (
+    NO_CONTROLLER,
+    InnerController,
+    Observer,
+    available_controllers,
+    available_observers,
+    make_controller,
+    make_observer,
+)
 from .params import DT_MIN, PRESETS, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
@@ -336,6 +344,7 @@ class EnvCore:
         num_envs: int,
         scenario: "str | Scenario" = "paper-0.1hz",
         controller: "str | InnerController | None" = None,
+        observer: "str | Observer" = "leso",
         residual_scale: float = 2.0,
         control_period: float = 0.01,
         privileged: bool = False,
@@ -364,6 +373,9 @@ class EnvCore:
         if not (controller is None or isinstance(controller, (str, InnerController))):
             raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
                              f"blf_gym.controller.InnerController, got {controller!r}")
+        if not isinstance(observer, (str, Observer)):
+            raise ValueError(f"{o} observer must be one of {available_observers()} or a "
+                             f"blf_gym.controller.Observer, got {observer!r}")
         residual_scale = check_real(o, "residual_scale", residual_scale, lo=0.0, lo_open=True, unit="N m")
         control_period = check_real(o, "control_period", control_period, lo=0.0, lo_open=True, unit="s")
         privileged = check_bool(o, "privileged", privileged)
@@ -421,6 +433,7 @@ class EnvCore:
                 f"({self.control_period} s)")
         self.max_episode_steps = self.sim.n_steps // self.steps_per_period
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
+        self.observer = make_observer(observer)
         self.residual = self.controller is not NO_CONTROLLER
         self.residual_scale = float(residual_scale)
         self.privileged = bool(privileged)
@@ -435,7 +448,7 @@ class EnvCore:
         self._wvec = np.array([float(w.relative), w.relative_cap, w.alive, w.tracking, w.torque, w.violation,
                                float(self.terminate_on_violation)])
         self.n = self.base.arm.n_links
-        self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, threads=threads)
+        self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, self.observer, threads=threads)
         self.obs_dim = len(observation_layout(self.n, self.privileged))
         layout = observation_layout(self.n, self.privileged)
         self.obs_low = np.array([r[2] for r in layout], dtype=np.float32)
@@ -525,7 +538,7 @@ class EnvCore:
                 todo.append((k, sc))
         if todo:
             ref = self.controller if self.residual else make_controller("proposed")
-            loop = ClosedLoop([sc for _, sc in todo], ref, threads=self._threads)
+            loop = ClosedLoop([sc for _, sc in todo], ref, self.observer, threads=self._threads)
             per = np.zeros((len(todo), self.max_episode_steps, self.n))
             total = np.zeros((len(todo), self.n))
             samples = np.zeros((len(todo), 1))

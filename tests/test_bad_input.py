@@ -266,6 +266,9 @@ BAD_KWARGS = {
     "controller": st.tuples(
         STRINGS.filter(lambda s: s not in CONTROLLERS) | st.integers() | st.floats() | BOOLS
         | CONTAINERS, st.just("controller")),
+    "observer": st.tuples(
+        STRINGS.filter(lambda s: s != "leso") | st.integers() | st.floats() | st.none() | BOOLS
+        | CONTAINERS, st.just("observer")),
     "residual_scale": st.tuples(bad_real(0.0, True, none_ok=False), st.just("residual_scale")),
     "control_period": st.tuples(
         bad_real(0.0, True, hi=30.0, none_ok=False,
