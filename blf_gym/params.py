@@ -423,6 +423,21 @@ class SimParams:
         return self.n_samples * self.steps_per_sample
 
 
+PLANT_TAIL = (
+    "viscous", "coulomb", "tanh_slope",                              # friction, FrictionParams
+    "slope_right", "slope_left", "break_right", "break_left",         # dead-zone, DeadZoneParams
+    "f_x", "f_y", "moment", "onset",                                  # external force, ForceParams
+    "max_torque", "divergence_limit", "error_rtol", "error_atol", "unstable_steps",  # SimParams
+)
+"""The packed plant vector after the arm block (2n+1 entries), declared once: the kernel reads
+every offset from this tuple (``blf_gym.simulate``), :meth:`Scenario.pack_plant` writes it."""
+
+
+def plant_length(n: int) -> int:
+    """Length of the packed plant vector of an n-link scenario."""
+    return 2 * n + 1 + len(PLANT_TAIL)
+
+
 @dataclass(frozen=True)
 class Scenario:
     """Everything that defines one closed-loop experiment except the controller.
@@ -491,17 +506,16 @@ class Scenario:
 
     # ---- packing for the compiled kernel -------------------------------------------------
     def pack_plant(self) -> np.ndarray:
-        """Layout: ``arm.pack()`` (2n+1), then [viscous, coulomb, tanh_slope,
-        slope_right, slope_left, break_right, break_left, f_x, f_y, moment, onset, max_torque,
-        divergence_limit, error_rtol, error_atol, unstable_steps]."""
-        f, d, w = self.friction, self.dead_zone, self.force
-        tail = [
-            f.viscous, f.coulomb, f.tanh_slope,
-            d.slope_right, d.slope_left, d.break_right, d.break_left,
-            *w.wrench, w.onset,
-            self.sim.max_torque, self.sim.divergence_limit,
-            self.sim.error_rtol, self.sim.error_atol, float(self.sim.unstable_steps),
-        ]
+        """Layout: ``arm.pack()`` (2n+1), then the entries of :data:`PLANT_TAIL`, in its order."""
+        f, d, w, s = self.friction, self.dead_zone, self.force, self.sim
+        values = {
+            "viscous": f.viscous, "coulomb": f.coulomb, "tanh_slope": f.tanh_slope,
+            "slope_right": d.slope_right, "slope_left": d.slope_left, "break_right": d.break_right,
+            "break_left": d.break_left, "f_x": w.wrench[0], "f_y": w.wrench[1], "moment": w.wrench[2],
+            "onset": w.onset, "max_torque": s.max_torque, "divergence_limit": s.divergence_limit,
+            "error_rtol": s.error_rtol, "error_atol": s.error_atol, "unstable_steps": float(s.unstable_steps),
+        }
+        tail = [values[name] for name in PLANT_TAIL]
         return np.concatenate([self.arm.pack(), np.asarray(tail, dtype=np.float64)])
 
     def pack_reference(self) -> np.ndarray:

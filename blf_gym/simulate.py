@@ -54,7 +54,7 @@ from .dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from .params import Scenario
+from .params import PLANT_TAIL, Scenario, plant_length
 from .reference import reference_into
 from .uncertainty import dead_zone, force_active, friction
 
@@ -75,16 +75,28 @@ CHANNELS = (
 _C = {name: i for i, name in enumerate(CHANNELS)}
 N_CHANNELS = len(CHANNELS)
 
-# Offsets after the arm block (2n+1) in the packed plant vector, see Scenario.pack_plant.
-(_VISC, _COUL, _PSI, _HR, _HL, _TR, _TL, _FX, _FY, _MZ, _ONSET, _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL,
- _UNSTABLE_STEPS) = range(16)
+# Offsets after the arm block (2n+1) in the packed plant vector, read from its one declaration.
+_T = {name: i for i, name in enumerate(PLANT_TAIL)}
+_VISC, _COUL, _PSI = _T["viscous"], _T["coulomb"], _T["tanh_slope"]
+_HR, _HL, _TR, _TL = _T["slope_right"], _T["slope_left"], _T["break_right"], _T["break_left"]
+_FX, _MZ, _ONSET = _T["f_x"], _T["moment"], _T["onset"]
+_UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"], _T["error_rtol"], _T["error_atol"]
+_UNSTABLE_STEPS = _T["unstable_steps"]
 
-# status columns
-ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = range(6)
-N_STATUS = 6
-# sums columns: ODE3 error-estimate maximum, sum over samples and joints of (e1/bound)^2 and of
-# (u/max_torque)^2, number of 1 ms samples, then per joint the sum over samples of e1^2 (rad^2)
-SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES, SUM_E2_JOINT = range(5)
+STATUS_COLUMNS = ("steps", "diverged", "violating_steps", "first_violating_step", "saturated_steps",
+                  "violating_samples")
+"""Per-arm integer status of one kernel call, declared once: steps taken, divergence code (0, 1
+non-finite or beyond the limit, 2 numerically unstable), violating integration steps, the first
+one (global index, -1 if none), steps with a saturated torque, violating 1 ms samples."""
+ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = (
+    STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
+N_STATUS = len(STATUS_COLUMNS)
+SUM_COLUMNS = ("error_estimate_max", "sum_e1_over_bound_sq", "sum_u_over_max_sq", "samples")
+"""Per-arm float sums of one kernel call, declared once: the largest ODE3 error estimate, the sums
+over 1 ms samples and joints of (e1/bound)^2 and (u/max_torque)^2, the number of samples; then,
+per joint, the sum over samples of e1^2 (rad^2)."""
+SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES = (SUM_COLUMNS.index(c) for c in SUM_COLUMNS)
+SUM_E2_JOINT = len(SUM_COLUMNS)
 
 
 @njit(cache=True, error_model="numpy")
@@ -347,7 +359,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         n_samples = 0
         viol_samples = 0
         for i in range(n):
-            sums[b, 4 + i] = 0.0
+            sums[b, SUM_E2_JOINT + i] = 0.0
         k0 = ksteps[b]
         steps = 0
         viol = 0
@@ -456,7 +468,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                         e = x[i] - ref[i]
                         en = e / bnd[0] if e >= 0.0 else e / bnd[3]
                         sum_en2 += en * en
-                        sums[b, 4 + i] += e * e
+                        sums[b, SUM_E2_JOINT + i] += e * e
                         un = u[i] / umax
                         sum_un2 += un * un
                         if e >= bnd[0] or e <= -bnd[3]:
@@ -500,16 +512,16 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     first_viol = k0 + steps
         ksteps[b] = k0 + steps
         unstable_run[b] = err_run
-        status[b, 0] = steps
-        status[b, 1] = diverged
-        status[b, 2] = viol
-        status[b, 3] = first_viol
-        status[b, 4] = sat_steps
-        status[b, 5] = viol_samples
-        sums[b, 0] = err_max
-        sums[b, 1] = sum_en2
-        sums[b, 2] = sum_un2
-        sums[b, 3] = n_samples
+        status[b, ST_STEPS] = steps
+        status[b, ST_DIVERGED] = diverged
+        status[b, ST_VIOL_STEPS] = viol
+        status[b, ST_FIRST_VIOL] = first_viol
+        status[b, ST_SAT_STEPS] = sat_steps
+        status[b, ST_VIOL_SAMPLES] = viol_samples
+        sums[b, SUM_ERR_MAX] = err_max
+        sums[b, SUM_EN2] = sum_en2
+        sums[b, SUM_UN2] = sum_un2
+        sums[b, SUM_SAMPLES] = n_samples
 
 
 def scratch_length(n: int) -> int:
@@ -744,7 +756,7 @@ class ClosedLoop:
         if not hasattr(self, "_batch"):
             n = self.n
             self._batch = _Batch(
-                plant=np.zeros((self.N, 2 * n + 17)),
+                plant=np.zeros((self.N, plant_length(n))),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
                 ref=np.zeros((self.N, 12)),
                 bnd=np.zeros((self.N, 5)),
