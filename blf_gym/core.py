@@ -39,7 +39,7 @@ from .simulate import (
     divergence_message,
 )
 
-__all__ = ["RewardWeights", "EnvCore", "observation_layout", "observation_index", "SQUASH_VELOCITY",
+__all__ = ["RewardWeights", "EnvCore", "OBSERVATION", "observation_layout", "observation_index", "SQUASH_VELOCITY",
            "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
@@ -134,39 +134,83 @@ _ANGLE_CLIP = 4.0 * math.pi
 _ERR_CLIP = 10.0
 
 
+OBSERVATION: tuple[tuple[str, "int | None", str, str, float, float, bool], ...] = (
+    # (group, entries: None = one per joint, name ("{j}" = the joint, from 1), unit, low, high, privileged)
+    ("y", None, "y_{j} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP, False),
+    ("q_d", None, "q_d_{j}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP, False),
+    ("qd_d", None, f"qd_d_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY, False),
+    ("qdd_d", None, f"qdd_d_{{j}} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION,
+     SQUASH_REF_ACCELERATION, False),
+    ("e1_normalized", None, "(y_{j} - q_d_{j}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP,
+     False),
+    ("k_a", 1, "k_a", "rad", 0.0, 10.0, False),
+    ("k_b", 1, "k_b", "rad", 0.0, 10.0, False),
+    ("k_a_rate", 1, "k_a'", "rad/s", -10.0, 10.0, False),
+    ("k_b_rate", 1, "k_b'", "rad/s", -10.0, 10.0, False),
+    ("phase", 2, "sin(2 pi f t)|cos(2 pi f t)", "-", -1.0, 1.0, False),
+    ("time", 1, "t / duration", "-", 0.0, 1.0, False),
+    ("u", None, "u_{j} / max_torque (last applied)", "-", -1.0, 1.0, False),
+    ("x2_hat", None, f"x2_hat_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY,
+     False),
+    ("x3_hat", None, f"x3_hat_{{j}} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
+     SQUASH_DISTURBANCE, False),
+    ("qd", None, f"qd_{{j}} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY, True),
+    ("x3", None, f"x3_{{j}} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
+     SQUASH_DISTURBANCE, True),
+)
+"""The observation vector, declared once, in order. The Python side (:func:`observation_index`,
+:func:`observation_layout`, the env's box and docstring, the baseline policies) and the compiled
+filler (``_observe_batch``, through the ``_OFF_*`` offsets) read it. Privileged groups come last
+and exist only with ``privileged=True``."""
+
+
+def _offsets() -> dict[str, tuple[int, int]]:
+    """Each group's start as (a, b): the offset is a * n + b for n joints."""
+    out, a, b = {}, 0, 0
+    for group, count, *_ in OBSERVATION:
+        out[group] = (a, b)
+        if count is None:
+            a += 1
+        else:
+            b += count
+    return out
+
+
+_OFF = _offsets()
+# compile-time offsets of the filler (a * n + b)
+_OFF_Y, _OFF_Q_D, _OFF_QD_D, _OFF_QDD_D = _OFF["y"], _OFF["q_d"], _OFF["qd_d"], _OFF["qdd_d"]
+_OFF_E1, _OFF_KA, _OFF_KB, _OFF_KAD, _OFF_KBD = (_OFF["e1_normalized"], _OFF["k_a"], _OFF["k_b"], _OFF["k_a_rate"],
+                                                 _OFF["k_b_rate"])
+_OFF_PHASE, _OFF_TIME, _OFF_U, _OFF_X2H, _OFF_X3H = _OFF["phase"], _OFF["time"], _OFF["u"], _OFF["x2_hat"], _OFF["x3_hat"]
+_OFF_QD, _OFF_X3 = _OFF["qd"], _OFF["x3"]
+
+
 def observation_index(n: int = 3) -> dict[str, slice]:
-    """Where each group of :func:`observation_layout` sits in the observation vector."""
-    k = 5 * n
-    return {
-        "y": slice(0, n), "q_d": slice(n, 2 * n), "qd_d": slice(2 * n, 3 * n),
-        "qdd_d": slice(3 * n, 4 * n), "e1_normalized": slice(4 * n, 5 * n),
-        "k_a": slice(k, k + 1), "k_b": slice(k + 1, k + 2), "k_a_rate": slice(k + 2, k + 3),
-        "k_b_rate": slice(k + 3, k + 4), "phase": slice(k + 4, k + 6), "time": slice(k + 6, k + 7),
-        "u": slice(k + 7, k + 7 + n), "x2_hat": slice(k + 7 + n, k + 7 + 2 * n),
-        "x3_hat": slice(k + 7 + 2 * n, k + 7 + 3 * n),
-        "qd": slice(k + 7 + 3 * n, k + 7 + 4 * n), "x3": slice(k + 7 + 4 * n, k + 7 + 5 * n),
-    }
+    """Where each group of :data:`OBSERVATION` sits in the observation vector."""
+    out = {}
+    for group, count, *_ in OBSERVATION:
+        a, b = _OFF[group]
+        out[group] = slice(a * n + b, a * n + b + (n if count is None else count))
+    return out
 
 
 def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, str, float, float]]:
     """(name, unit, low, high) of every observation entry, in order."""
     rows: list[tuple[str, str, float, float]] = []
-    rows += [(f"y_{j+1} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP) for j in range(n)]
-    rows += [(f"q_d_{j+1}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP) for j in range(n)]
-    rows += [(f"qd_d_{j+1} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
-    rows += [(f"qdd_d_{j+1} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION, SQUASH_REF_ACCELERATION) for j in range(n)]
-    rows += [(f"(y_{j+1} - q_d_{j+1}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP) for j in range(n)]
-    rows += [("k_a", "rad", 0.0, 10.0), ("k_b", "rad", 0.0, 10.0),
-             ("k_a'", "rad/s", -10.0, 10.0), ("k_b'", "rad/s", -10.0, 10.0),
-             ("sin(2 pi f t)", "-", -1.0, 1.0), ("cos(2 pi f t)", "-", -1.0, 1.0),
-             ("t / duration", "-", 0.0, 1.0)]
-    rows += [(f"u_{j+1} / max_torque (last applied)", "-", -1.0, 1.0) for j in range(n)]
-    rows += [(f"x2_hat_{j+1} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
-    rows += [(f"x3_hat_{j+1} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE, SQUASH_DISTURBANCE) for j in range(n)]
-    if privileged:
-        rows += [(f"qd_{j+1} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY) for j in range(n)]
-        rows += [(f"x3_{j+1} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE, SQUASH_DISTURBANCE) for j in range(n)]
+    for group, count, name, unit, lo, hi, priv in OBSERVATION:
+        if priv and not privileged:
+            continue
+        if count is None:
+            rows += [(name.format(j=j + 1), unit, lo, hi) for j in range(n)]
+        else:
+            names = name.split("|")
+            rows += [(names[i] if len(names) == count else name, unit, lo, hi) for i in range(count)]
     return rows
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _at(off, n):
+    return off[0] * n + off[1]
 
 
 @njit(cache=True, error_model="numpy")
@@ -176,8 +220,8 @@ def _sq(x, c):
 
 @njit(cache=True, error_model="numpy")
 def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, out, ref, bnd):
-    """Fill ``out`` (N, obs_dim) with the layout of :func:`observation_layout`, and ``ref`` /
-    ``bnd`` with the reference and bounds at ``t``."""
+    """Fill ``out`` (N, obs_dim) with the entries of :data:`OBSERVATION` (offsets from its
+    declaration), and ``ref`` / ``bnd`` with the reference and bounds at ``t``."""
     N = X.shape[0]
     n = last_x3.shape[1]
     for b in range(N):
@@ -191,31 +235,28 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
             # from the true angle (info["e1"] and the privileged entries keep the true one)
             y = X[b, j] + noise[b, j]
             e = y - ref[b, j]
-            o[j] = min(max(y, -_ANGLE_CLIP), _ANGLE_CLIP)
-            o[n + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
-            o[2 * n + j] = _sq(ref[b, n + j], SQUASH_VELOCITY)
-            o[3 * n + j] = _sq(ref[b, 2 * n + j], SQUASH_REF_ACCELERATION)
+            o[_at(_OFF_Y, n) + j] = min(max(y, -_ANGLE_CLIP), _ANGLE_CLIP)
+            o[_at(_OFF_Q_D, n) + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
+            o[_at(_OFF_QD_D, n) + j] = _sq(ref[b, n + j], SQUASH_VELOCITY)
+            o[_at(_OFF_QDD_D, n) + j] = _sq(ref[b, 2 * n + j], SQUASH_REF_ACCELERATION)
             en = e / ka if e >= 0.0 else e / kb
-            o[4 * n + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
-        k = 5 * n
-        o[k] = ka
-        o[k + 1] = kb
-        o[k + 2] = bnd[b, 1]
-        o[k + 3] = bnd[b, 4]
+            o[_at(_OFF_E1, n) + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
+        o[_at(_OFF_KA, n)] = ka
+        o[_at(_OFF_KB, n)] = kb
+        o[_at(_OFF_KAD, n)] = bnd[b, 1]
+        o[_at(_OFF_KBD, n)] = bnd[b, 4]
         ph = 2.0 * np.pi * rp[b, 0] * t[b]
-        o[k + 4] = np.sin(ph)
-        o[k + 5] = np.cos(ph)
-        o[k + 6] = min(max(t[b] / dur[b], 0.0), 1.0)
-        k += 7
+        o[_at(_OFF_PHASE, n)] = np.sin(ph)
+        o[_at(_OFF_PHASE, n) + 1] = np.cos(ph)
+        o[_at(_OFF_TIME, n)] = min(max(t[b] / dur[b], 0.0), 1.0)
         for j in range(n):
-            o[k + j] = min(max(last[b, j] / umax[b], -1.0), 1.0)
-            o[k + n + j] = _sq(X[b, 3 * n + j], SQUASH_VELOCITY)
-            o[k + 2 * n + j] = _sq(X[b, 4 * n + j], SQUASH_DISTURBANCE)
+            o[_at(_OFF_U, n) + j] = min(max(last[b, j] / umax[b], -1.0), 1.0)
+            o[_at(_OFF_X2H, n) + j] = _sq(X[b, 3 * n + j], SQUASH_VELOCITY)
+            o[_at(_OFF_X3H, n) + j] = _sq(X[b, 4 * n + j], SQUASH_DISTURBANCE)
         if privileged:
-            k += 3 * n
             for j in range(n):
-                o[k + j] = _sq(X[b, n + j], SQUASH_VELOCITY)
-                o[k + n + j] = _sq(last_x3[b, j], SQUASH_DISTURBANCE)
+                o[_at(_OFF_QD, n) + j] = _sq(X[b, n + j], SQUASH_VELOCITY)
+                o[_at(_OFF_X3, n) + j] = _sq(last_x3[b, j], SQUASH_DISTURBANCE)
 
 
 @njit(cache=True, error_model="numpy")
