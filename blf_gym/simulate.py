@@ -187,6 +187,53 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3):
         r[16, i] = y[i]
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _ode3_update(x, K0, K1, K2, dt, divlim, xn, ep):
+    """The Bogacki-Shampine step: the new state into ``xn``, the embedded estimate's first part
+    into ``ep``; False if an entry is non-finite or beyond ``divlim``."""
+    ok = True
+    for i in range(x.shape[0]):
+        ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
+        v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
+        if not (abs(v) <= divlim):  # also catches NaN
+            ok = False
+        xn[i] = v
+    return ok
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _error_ratio(ep, K3, xn, dt, atol, rtol):
+    """The step's embedded second-order error estimate over its tolerance, worst entry (K3 is the
+    evaluation at the new state with the step's own inputs, docs/model.md section 9)."""
+    en = 0.0
+    for i in range(xn.shape[0]):
+        e = abs(dt * (ep[i] - 0.125 * K3[i])) / (atol + rtol * abs(xn[i]))
+        if e > en:
+            en = e
+    return en
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _accumulate_sample(x, ref, bnd, u, umax, e2_joint, last_row, n):
+    """One 1 ms sample's reward and metric terms: adds each joint's e1^2 to ``e2_joint`` and keeps
+    the LESO's disturbance estimate in ``last_row``; returns (sum over joints of (e1/bound)^2, of
+    (u/max_torque)^2, whether the sample violates a bound)."""
+    en2 = 0.0
+    un2 = 0.0
+    bad = False
+    for i in range(n):
+        e = x[i] - ref[i]
+        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
+        en2 += en * en
+        e2_joint[i] += e * e
+        un = u[i] / umax
+        un2 += un * un
+        if e >= bnd[0] or e <= -bnd[3]:
+            bad = True
+        last_row[4 * n + i] = x[4 * n + i]
+    return en2, un2, bad
+
+
 def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref, bnd, ulaw,
                     u, hu, satf, dx, pw, Mp, Lp, model, wl, wo):
     """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
@@ -358,8 +405,10 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         sum_un2 = 0.0
         n_samples = 0
         viol_samples = 0
+        e2_joint = sums[b, SUM_E2_JOINT : SUM_E2_JOINT + n]
+        last_b = last[b]
         for i in range(n):
-            sums[b, SUM_E2_JOINT + i] = 0.0
+            e2_joint[i] = 0.0
         k0 = ksteps[b]
         steps = 0
         viol = 0
@@ -396,14 +445,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     for i in range(nx):
                         xs[i] = x[i] + 0.75 * dt * K1[i]
                 else:
-                    ok = True
-                    for i in range(nx):
-                        ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
-                        v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
-                        if not (abs(v) <= divlim):  # also catches NaN
-                            ok = False
-                        xn[i] = v
-                    if not ok:
+                    if not _ode3_update(x, K0, K1, K2, dt, divlim, xn, ep):
                         diverged = 1
                         halt = True
                         break
@@ -421,11 +463,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     # Embedded second-order error estimate of this step. It grows without bound
                     # when h is outside ODE3's stability region, even when the actuator limit
                     # keeps the state finite.
-                    en = 0.0
-                    for i in range(nx):
-                        e = abs(dt * (ep[i] - 0.125 * K3[i])) / (err_atol + err_rtol * abs(xn[i]))
-                        if e > en:
-                            en = e
+                    en = _error_ratio(ep, K3, xn, dt, err_atol, err_rtol)
                     if en > err_max:
                         err_max = en
                     if en > 1.0:
@@ -463,17 +501,9 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                             smp[2 * n + i] = K0[n + i]
                             smp[3 * n + i] = u[i]
                         x3_pending = True
-                    bad = False
-                    for i in range(n):
-                        e = x[i] - ref[i]
-                        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
-                        sum_en2 += en * en
-                        sums[b, SUM_E2_JOINT + i] += e * e
-                        un = u[i] / umax
-                        sum_un2 += un * un
-                        if e >= bnd[0] or e <= -bnd[3]:
-                            bad = True
-                        last[b, 4 * n + i] = x[4 * n + i]
+                    en2, un2, bad = _accumulate_sample(x, ref, bnd, u, umax, e2_joint, last_b, n)
+                    sum_en2 += en2
+                    sum_un2 += un2
                     n_samples += 1
                     if bad:
                         viol_samples += 1
