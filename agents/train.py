@@ -472,6 +472,7 @@ def train(
         model.save(tmp)
     record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
     venv.close()
+    print(f"blf-train: wrote {out / 'model.zip'} and {out / 'metadata.json'} ({model.num_timesteps} steps)")
     return out
 
 
@@ -530,10 +531,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
     meta = json.loads((out / "metadata.json").read_text())
-    if meta.get("status") == "interrupted":
-        return 130
-    print(f"blf-train: wrote {out / 'model.zip'} and {out / 'metadata.json'}")
-    return 0
+    return 130 if meta.get("status") == "interrupted" else 0
 
 
 if __name__ == "__main__":
