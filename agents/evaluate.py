@@ -218,7 +218,7 @@ def _law_rmse(records: Sequence[dict[str, Any]], r: dict[str, Any]) -> list[floa
 
 def _table(records: Sequence[dict[str, Any]]) -> str:
     head = (f"{'policy':<16} {'kind':<8} {'scenario':<14} {'ep':>3} | {'RMSE j1':>8} {'j2':>8} {'j3':>8} | "
-            f"{'/ law j1':>8} {'j2':>5} {'j3':>5} | {'score':>6} | "
+            f"{'/ law j1':>8} {'j2':>6} {'j3':>6} | {'score':>6} | "
             f"{'viol':>6} {'frac':>7} {'fail':>5} {'cert':>5} | {'CVaR':>7} | {'excess':>7} {'margin':>7} | "
             f"{'1st viol':>8} | {'u rms':>16} {'u peak':>17}")
     lines = [head, "-" * len(head)]
@@ -233,9 +233,9 @@ def _table(records: Sequence[dict[str, Any]]) -> str:
         cvar = "-" if r["rmse_cvar_deg"] is None else f"{r['rmse_cvar_deg']:.4f}"
         law = _law_rmse(records, r)
         if law is not None and all(v is not None for v in r["rmse_deg"]):
-            ratio = f"{r['rmse_deg'][0] / law[0]:>8.3f} " + " ".join(f"{r['rmse_deg'][j] / law[j]:>5.2f}" for j in (1, 2))
+            ratio = f"{r['rmse_deg'][0] / law[0]:>8.3f} " + " ".join(f"{r['rmse_deg'][j] / law[j]:>6.3f}" for j in (1, 2))
         else:
-            ratio = f"{'-':>8} {'-':>5} {'-':>5}"
+            ratio = f"{'-':>8} {'-':>6} {'-':>6}"
         score = "-" if r.get("score_vs_law") is None else f"{r['score_vs_law']:.3f}"
         cert = "-" if r.get("certificate_broken") is None else f"{r['certificate_broken']:.2f}"
         urms = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_rms"])
@@ -266,7 +266,8 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
         rows = [(r, trajs[0]) for r, trajs in results if r["scenario"] == sc and trajs and trajs[0].n_samples]
         if not rows:
             continue
-        columns = [("baselines and residual agents", [x for x in rows if x[0]["kind"] != "plain"]),
+        columns = [("laws" + (" and residual agents" if any(x[0]["kind"] == "residual" for x in rows) else ""),
+                    [x for x in rows if x[0]["kind"] != "plain"]),
                    ("plain agents (own scale)", [x for x in rows if x[0]["kind"] == "plain"])]
         columns = [c for c in columns if c[1]]
         for kind in ("error", "torque"):
@@ -294,7 +295,8 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
                 axes[0, col].set_title(title, fontsize=9)
                 axes[-1, col].set_xlabel("t (s)")
             fig.suptitle(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
-                         + (" (first episode)" if sc == "randomized" else ""), fontsize=11)
+                         + ("" if rows[0][0]["episodes"] == 1 else f" (first of {rows[0][0]['episodes']} episodes)"),
+                         fontsize=11)
             fig.tight_layout()
             path = out / f"{kind}_{sc}.png"
             with atomic_path(path) as tmp:
@@ -327,6 +329,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
         if args.observer not in available_observers():
             raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")
+        if args.out is not None:
+            try:
+                check_out_dir(args.out)  # a file, a read-only folder: said before anything runs
+            except OSError as exc:
+                raise ValueError(os_error_message(exc, args.out)) from None
         seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
         groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite)
         if not groups:

@@ -138,7 +138,8 @@ def _stats_markdown(stats: list[dict[str, Any]]) -> str:
     out.append("")
     out.append("score_vs_law per episode: the geometric mean over joints of the proposed law's RMSE over the "
                "policy's, on the same scenario and noise (1 = the law's level). IQM and its stratified-bootstrap "
-               f"interval ({BOOTSTRAP_REPS} resamples) and P(score > 1) from rliable, over seeds x episodes; failure "
+               f"interval ({BOOTSTRAP_REPS} resamples) and P(score > 1) from rliable, over seeds x episodes (ties with the law "
+               "count one half, so the law against itself gets 0.5); failure "
                "rate and certificate_broken (the policy violates where the law alone does not) averaged over seeds.")
     return "\n".join(out) + "\n"
 
