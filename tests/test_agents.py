@@ -291,7 +291,15 @@ def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
             want = np.asarray(curve["points"][-1][g]["rmse_deg"]) / np.asarray(law[g])
             np.testing.assert_allclose(r[g]["ratio"], want, rtol=1e-12)
         assert r["worst_ratio"] == pytest.approx(max(max(r[g]["ratio"]) for g in res["law"]))
+        # the ranking score is score_vs_law: 1 / the geometric mean of the nine RMSE ratios
+        ratios = [v for g in ("paper-0.1hz", "paper-0.5hz", "randomized") for v in r[g]["ratio"]]
+        assert r["score_vs_law"] == pytest.approx(1.0 / np.exp(np.mean(np.log(ratios))), rel=1e-12)
     assert "| small |" in (out / "tune.md").read_text()
+    from agents.tune import rank
+
+    fake = [{"score_vs_law": 2.0, "violations": 3}, {"score_vs_law": 1.1, "violations": 0},
+            {"score_vs_law": 1.5, "violations": 0}]
+    assert [r["score_vs_law"] for r in rank(fake)] == [1.5, 1.1, 2.0]  # a violation always loses
     capsys.readouterr()
     # a second call trains nothing and rebuilds the same table
     assert tune_main([*cands, "--timesteps", "128", "--out", str(out)]) == 0
