@@ -526,8 +526,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
             # inputs are the same (no noise, and the residual is held for the whole call)
             have_k0 = check and not noisy and j + 1 < n_steps
             if have_k0:
-                for i in range(nx):
-                    K0[i] = K3[i]
+                K0, K3 = K3, K0  # swap the views: no copy
         if x3_pending:
             _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nom_b, x3, Mp, Lp, pw)
             for i in range(n):
