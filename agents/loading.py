@@ -44,15 +44,21 @@ def algorithm_class(name: str):
                          f"install the package that provides it (tqc: pip install sb3-contrib)") from exc
 
 
+def read_json_object(path: Path, what: str, hint: str = "") -> dict[str, Any]:
+    """A JSON object from ``path``; ValueError naming the file if it is unreadable or not an object."""
+    try:
+        obj = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not readable as JSON ({exc}); it should hold {what}{hint}") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"{path}: not a JSON object; it should hold {what}{hint}")
+    return obj
+
+
 def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
     if not meta_path.is_file():
         raise ValueError(f"{model_path}: no metadata.json beside the model; was it written by blf-train?")
-    try:
-        meta = json.loads(meta_path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{meta_path}: not readable as JSON ({exc}); it should hold the run's metadata") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{meta_path}: not a JSON object; it should hold the run's metadata")
+    meta = read_json_object(meta_path, "the run's metadata")
     for key in ("algo", "mode", "env_kwargs"):
         if key not in meta:
             raise ValueError(f"{meta_path}: the metadata lacks {key!r}")

@@ -27,8 +27,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -74,26 +72,6 @@ def _algo_class(name: str):
     from .loading import algorithm_class
 
     return algorithm_class(name)
-
-
-def _versions() -> dict[str, str]:
-    import importlib.metadata as md
-
-    out = {"python": platform.python_version()}
-    for pkg in ("blf-gym", "numpy", "numba", "gymnasium", "stable-baselines3", "torch", "sb3-contrib"):
-        try:
-            out[pkg] = md.version(pkg)
-        except md.PackageNotFoundError:
-            pass
-    return out
-
-
-def _git_commit() -> str | None:
-    try:
-        return subprocess.run(["git", "rev-parse", "HEAD"], cwd=Path(__file__).parent, capture_output=True,
-                              text=True, timeout=5, check=True).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        return None
 
 
 def _make_progress_callback(total: int, start: int, enabled: bool):
@@ -207,13 +185,9 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
 
 def _read_metadata(path: Path) -> dict[str, Any]:
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path} cannot be read as JSON ({exc}); move it away to start a new run") from None
-    if not isinstance(meta, dict):
-        raise ValueError(f"{path} does not hold a run's metadata (a JSON object)")
-    return meta
+    from .loading import read_json_object
+
+    return read_json_object(path, "the run's metadata", "; move it away to start a new run")
 
 
 def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -> dict[str, Any]:
@@ -408,6 +382,9 @@ def train(
     segment = {"start_timesteps": start_steps, "end_timesteps": start_steps, "wall_s": 0.0,
                "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running", "command": command}
     segments.append(segment)
+    from blf_gym.metrics import provenance
+
+    prov = provenance()
     meta: dict[str, Any] = {
         "name": name or (prior or {}).get("name") or out.name,
         "algo": algo,
@@ -425,8 +402,8 @@ def train(
         "wall_s": 0.0,
         "wall_s_to_model": prior_model_wall,
         "segments": segments,
-        "versions": _versions(),
-        "git_commit": _git_commit(),
+        "versions": prov["versions"],
+        "git_commit": prov["git_commit"],
         "command": (prior or {}).get("command") if resume else command,
         "host": {"cpus": os.cpu_count()},
     }
