@@ -42,7 +42,6 @@ from .loading import load_agent  # the one agent loader, re-exported here
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "build_scenarios", "load_agent"]
 
 
-
 def registered_controllers() -> list[str]:
     """The inner controllers registered in the ``blf_gym.controllers`` entry-point group."""
     from blf_gym.controller import available_controllers
@@ -52,8 +51,6 @@ def registered_controllers() -> list[str]:
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
-
-
 
 
 def suite_seed_offset(suite: str) -> int:
@@ -350,8 +347,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("blf-eval: error: --save-traj needs --out DIR", file=sys.stderr)
         return 2
     try:
-        if args.out is not None:
-            check_out_dir(args.out)  # a file, a read-only folder: said before the run, not after
         return _run(args, groups, agents, kwargs)
     except OSError as exc:
         print(f"blf-eval: error: {os_error_message(exc, args.out)}", file=sys.stderr)
