@@ -432,8 +432,9 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 if st == 0:
                     ts = t
                     kst = K0
-                    for i in range(nx):
-                        xs[i] = x[i]
+                    if not have_k0:
+                        for i in range(nx):
+                            xs[i] = x[i]
                 elif st == 1:
                     ts = t + 0.5 * dt
                     kst = K1
