@@ -353,8 +353,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
 
-def _group_provenance(label: str, scenarios: Sequence[Scenario], args: argparse.Namespace,
-                      kwargs: dict[str, Any]) -> dict[str, Any]:
+def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[str, Any]) -> dict[str, Any]:
     suite = label.split("+")[0]
     prov: dict[str, Any] = {"scenario_kwargs": kwargs or None,
                             "noise_seeds": [EVAL_SEED_OFFSET + i for i in range(len(scenarios))]}
@@ -403,7 +402,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 meta = None if agent is None else agent[1]
                 law = (trajs if (agent is None and name == "proposed" and args.observer == "leso")
                        else law_for(label, scs, meta))
-                prov = _group_provenance(label, scs, args, kwargs)
+                prov = _group_provenance(label, scs, kwargs)
                 if meta is not None:
                     prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"))
                 rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)

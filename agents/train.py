@@ -68,12 +68,6 @@ def load_config(path: str | Path) -> dict[str, Any]:
     return cfg
 
 
-def _algo_class(name: str):
-    from .loading import algorithm_class
-
-    return algorithm_class(name)
-
-
 def _make_progress_callback(total: int, start: int, enabled: bool):
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -247,7 +241,7 @@ def train(
     observer = given["observer"] or "leso"
     if timesteps is None:
         timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
-    from .loading import available_algorithms
+    from .loading import algorithm_class, available_algorithms
 
     if algo not in available_algorithms():
         raise ValueError(f"unknown algo {algo!r}; accepted values: {available_algorithms()}")
@@ -301,7 +295,7 @@ def train(
     from .vec_env import BLFVecEnv
 
     torch.set_num_threads(1)
-    cls = _algo_class(algo)
+    cls = algorithm_class(algo)
     n_envs = int(cfg.get("n_envs", 1))
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **env_kwargs))
     start_steps = 0

@@ -76,16 +76,17 @@ def score_vs_law(rmse_policy: Sequence[float] | None, rmse_law: Sequence[float] 
     return float(np.exp(np.mean(np.log(law / p))))
 
 
-def _episode(traj: Any) -> tuple[list[float] | None, int, bool]:
-    """(per-joint RMSE in degrees or None, violating 1 ms samples, failed) of one trajectory."""
+def _episode(traj: Any) -> tuple[dict[str, np.ndarray], np.ndarray | None, list[float] | None, int, bool]:
+    """One trajectory's (signals, violation mask or None, per-joint RMSE in degrees or None,
+    violating 1 ms samples, failed): the per-episode facts every record and score is built on."""
     a = _traj_arrays(traj)
     e1 = a["e1"]
     if e1.shape[0] == 0:
-        return None, 0, True
+        return a, None, None, 0, True
     mask = violation_mask(e1, a["k_a"], a["k_b"])
-    rmse = np.degrees(np.sqrt(np.mean(e1 ** 2, axis=0))).tolist()
+    rmse = np.degrees(np.sqrt(np.sum(e1 ** 2, axis=0) / e1.shape[0])).tolist()
     failed = bool(mask.any() or getattr(traj, "step_violations", 0) > 0 or getattr(traj, "diverged", False))
-    return rmse, int(mask.any(axis=1).sum()), failed
+    return a, mask, rmse, int(mask.any(axis=1).sum()), failed
 
 
 def cvar_upper(values: Sequence[float], alpha: float = 0.5) -> float:
@@ -138,17 +139,18 @@ def summarize(
     fails = 0
     diverged = False
     per_episode_rmse: list[float] = []
+    eps: list[tuple[list[float] | None, int, bool]] = []
     episodes = 0
     for traj in trajectories:
-        a = _traj_arrays(traj)
+        a, mask, ep_rmse, ep_viol, ep_failed = _episode(traj)
+        eps.append((ep_rmse, ep_viol, ep_failed))
         e1, ka, kb, u = a["e1"], a["k_a"], a["k_b"], a["u"]
         episodes += 1
         n_joints = e1.shape[1] if e1.ndim == 2 else 3
-        if e1.shape[0] == 0:
+        if mask is None:
             diverged = True
             fails += 1
             continue
-        mask = violation_mask(e1, ka, kb)
         beyond = np.maximum(np.maximum(e1 - ka, -kb - e1), 0.0)
         marg = np.minimum(ka - e1, e1 + kb)
         sq = np.sum(e1 ** 2, axis=0)
@@ -169,10 +171,8 @@ def summarize(
         u_sq += np.sum(u ** 2, axis=0)
         u_peak = np.maximum(u_peak, np.abs(u).max(axis=0))
         sat += a["saturated"].sum(axis=0)
-        per_episode_rmse.append(float(np.mean(np.degrees(np.sqrt(sq / e1.shape[0])))))
-        step_viol = getattr(traj, "step_violations", 0)
-        ep_div = bool(getattr(traj, "diverged", False))
-        diverged |= ep_div
+        per_episode_rmse.append(float(np.mean(ep_rmse)))
+        diverged |= bool(getattr(traj, "diverged", False))
         # earliest violation: a 1 ms sample, or an integration step between samples
         candidates = []
         if mask.any():
@@ -182,12 +182,9 @@ def summarize(
             candidates.append(float(step_t))
         if candidates:
             first = min(candidates) if first is None else min(first, *candidates)
-        if mask.any() or step_viol > 0 or ep_div:
-            fails += 1
+        fails += ep_failed
     if episodes == 0:
         raise ValueError("summarize needs at least one trajectory")
-    trajectories = list(trajectories) if not isinstance(trajectories, list) else trajectories
-    eps = [_episode(t) for t in trajectories]
     extra: dict[str, Any] = {
         "per_episode_rmse_deg": [e[0] for e in eps],
         "per_episode_violations": [e[1] for e in eps],
@@ -198,7 +195,7 @@ def summarize(
         law = list(law)
         if len(law) != len(eps):
             raise ValueError(f"summarize: {len(law)} law trajectories for {len(eps)} episodes")
-        law_eps = [_episode(t) for t in law]
+        law_eps = [_episode(t)[2:] for t in law]
         extra["per_episode_score"] = [score_vs_law(p[0], q[0]) for p, q in zip(eps, law_eps)]
         extra["law_failure_rate"] = sum(q[2] for q in law_eps) / len(law_eps)
         extra["certificate_broken"] = sum(p[2] and not q[2] for p, q in zip(eps, law_eps)) / len(eps)

@@ -49,7 +49,7 @@ import numpy as np
 from .params import PRESETS, ArmParams, Scenario, check_bool, check_real, is_real, preset, real_text
 
 __all__ = ["VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES", "STRESS_SEED_OFFSET", "UNITS",
-           "apply_variations", "check_variations", "sample_suite", "sample_stress", "outside_training",
+           "apply_variations", "check_variations", "sample_suite", "outside_training",
            "resolve_scenario", "SUITES"]
 
 VARIATIONS = ("frequency", "force", "force_onset", "friction_scale", "dead_zone_scale", "payload",
@@ -241,11 +241,6 @@ def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: s
         else:
             draws[knob] = _outside(rng, knob, draws["frequency"], base.sim.duration)
     return replace(apply_variations(base, draws, strict=False), name=name)
-
-
-def sample_stress(rng: np.random.Generator, base: Scenario | None = None) -> Scenario:
-    """One scenario of the held-out stress suite (``sample_suite(rng, base, "stress")``)."""
-    return sample_suite(rng, base, "stress")
 
 
 def outside_training(sc: Scenario, base: Scenario | None = None) -> list[str]:

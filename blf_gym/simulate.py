@@ -609,12 +609,6 @@ def _remove_stale_cache(cache: Path, prefix: str, digest: str) -> None:
                 pass
 
 
-def kernel_is_cached(law, observer_rhs, n: int = 3) -> bool:
-    """True if the kernel for this (law, observer) pair is compiled, in memory or on disk (in the
-    folder numba actually uses, which is not always the one next to the sources)."""
-    return _is_cached(_specialise(law, observer_rhs, n))
-
-
 def compile_notice(controller: str, observer: str, cache: Path) -> None:
     """Tell the user why the first run waits (printed once per kernel, on standard error)."""
     import sys
