@@ -13,10 +13,10 @@ from typing import Any
 
 import numpy as np
 
-from blf_gym.controller import InnerController, Observer
+from blf_gym.blocks import Controller, Observer
 from blf_gym.params import ArmParams
 
-from .laws import bc_law, lesobc_law, proposed_law
+from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
 
 __all__ = ["ControllerGains", "ObserverGains", "bc", "lesobc", "proposed", "leso"]
@@ -35,11 +35,11 @@ def _vector(name: str, value: Any, n: int) -> tuple[float, ...]:
 class ControllerGains:
     """Backstepping gains (paper Table 2) and the barrier guard."""
 
-    K1: tuple[float, ...] = (20.0, 20.0, 15.0)
+    K1: tuple[float, ...] = field(default=(20.0, 20.0, 15.0), metadata={"unit": "1/s"})
     """Diagonal of K1 = 10 diag(2, 2, 1.5), 1/s (each > 0)."""
-    K2: tuple[float, ...] = (45.0, 45.0, 15.0)
+    K2: tuple[float, ...] = field(default=(45.0, 45.0, 15.0), metadata={"unit": "N m s/rad"})
     """Diagonal of K2 = 30 diag(1.5, 1.5, 0.5), N m s/rad (each > 0)."""
-    barrier_clip: float = 0.95
+    barrier_clip: float = field(default=0.95, metadata={"unit": "-"})
     """rho in (0, 1): the barrier term is evaluated with |e1| <= rho x bound. 0.95 keeps the
     closed loop integrable at h = 0.1 ms (docs/model.md section 5); raise it only with a smaller step."""
     nominal: ArmParams = field(default_factory=ArmParams)
@@ -53,6 +53,7 @@ class ControllerGains:
             raise ValueError(f"ControllerGains.barrier_clip must be in (0, 1), got {self.barrier_clip!r}")
 
     def pack(self) -> np.ndarray:
+        """[K1 (n), K2 (n), barrier_clip], the layout of the controller's packed gains."""
         return np.array([*self.K1, *self.K2, self.barrier_clip], dtype=np.float64)
 
 
@@ -60,7 +61,7 @@ class ControllerGains:
 class ObserverGains:
     """LESO bandwidth (paper Table 2)."""
 
-    k0: float = 200.0
+    k0: float = field(default=200.0, metadata={"unit": "1/s"})
     """Observer bandwidth: all three poles per joint at -k0, 1/s (> 0)."""
     nominal: ArmParams = field(default_factory=ArmParams)
 
@@ -77,22 +78,26 @@ def _gains(kwargs: dict[str, Any]) -> ControllerGains:
     return ControllerGains(**kwargs)
 
 
-def bc(**kwargs: Any) -> InnerController:
+_LESO_STATES = {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n"}
+"""The LESO's states: estimated angles (rad), velocities (rad/s) and lumped disturbance (rad/s^2)."""
+
+
+def bc(**kwargs: Any) -> Controller:
     """Backstepping control (full state: reads the true velocity)."""
-    g = _gains(kwargs)
-    return InnerController("bc", bc_law, g.pack(), g.nominal, full_state=True)
+    return Controller("bc", bc_output, _gains(kwargs))
 
 
-def lesobc(**kwargs: Any) -> InnerController:
+def lesobc(**kwargs: Any) -> Controller:
     """Backstepping with the LESO's velocity and disturbance estimates."""
-    g = _gains(kwargs)
-    return InnerController("lesobc", lesobc_law, g.pack(), g.nominal)
+    return Controller("lesobc", lesobc_output, _gains(kwargs),
+                      outputs={"u_law": "n", "z1": "n", "z2_hat": "n"})
 
 
-def proposed(**kwargs: Any) -> InnerController:
-    """The paper's LESO + barrier-Lyapunov law."""
-    g = _gains(kwargs)
-    return InnerController("proposed", proposed_law, g.pack(), g.nominal)
+def proposed(**kwargs: Any) -> Controller:
+    """The paper's LESO + barrier-Lyapunov law; publishes z1 (rad), z2_hat = x2_hat - alpha1 (rad/s)
+    and its barrier term (1/rad)."""
+    return Controller("proposed", proposed_output, _gains(kwargs),
+                      outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"})
 
 
 def leso(**kwargs: Any) -> Observer:
@@ -101,5 +106,5 @@ def leso(**kwargs: Any) -> Observer:
     unknown = set(kwargs) - valid
     if unknown:
         raise ValueError(f"unknown observer gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    g = ObserverGains(**kwargs)
-    return Observer("leso", leso_rhs, np.array([g.k0]), g.nominal)
+    return Observer("leso", leso_rhs, _LESO_STATES, ObserverGains(**kwargs),
+                    pairs_with=("bc", "lesobc", "proposed"))

@@ -1,10 +1,9 @@
-"""The three control laws of the paper's Section 4.2 as pure compiled functions.
+"""The three control laws of the paper's Section 4.2 as plug-in functions over named signals.
 
-Each has the blf_gym law signature
-``law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work)``
-(see :mod:`blf_gym.controller`) with ``gains = [K1 (n), K2 (n), barrier_clip]``. Symbols map to
-the paper as: e1 = q - q_d (tracking error), alpha1 (virtual velocity), e2 = v - alpha1, K1, K2
-(Table 2), k_a/k_b (the error bounds), x3_hat (estimated lumped disturbance).
+Each is the ``output`` function of a :class:`blf_gym.blocks.Controller`; its parameter names are the
+signals it reads (:mod:`blf_gym.blocks`) and the outputs it writes. Symbols map to the paper as:
+e1 = q - q_d (tracking error, z1), alpha1 (virtual velocity), e2 = v - alpha1 (z2), K1, K2 (Table 2),
+k_a/k_b (the error bounds), x3_hat (estimated lumped disturbance).
 
 All three share the backstepping core ``u0 = -K2 e2 + C(y, v) alpha1 + G(y) + M(y) alpha1'`` with
 alpha1' computed analytically from the velocity v the law uses (docs/model.md section 5):
@@ -19,6 +18,9 @@ Barrier guard (docs/model.md section 5): the barrier is singular at the bound an
 kappa is evaluated with e1 clipped to ``barrier_clip`` times the bound on its side. The law is
 then finite for every finite state, and its stiffness near the bound is limited (the closed loop
 stays integrable with ODE3 at 0.1 ms for barrier_clip = 0.95).
+
+LESOBC and the proposed law also publish z1 = e1 and z2_hat = x2_hat - alpha1; the proposed law its
+barrier term kappa (1/rad) too.
 """
 
 from __future__ import annotations
@@ -26,11 +28,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.dynamics import coriolis_times_into
+from blf_gym.blocks import coriolis_times
 
-__all__ = ["bc_law", "lesobc_law", "proposed_law", "barrier_term", "GAIN_LAYOUT"]
-
-GAIN_LAYOUT = "[K1_1..K1_n, K2_1..K2_n, barrier_clip]"
+__all__ = ["bc_output", "lesobc_output", "proposed_output", "barrier_term"]
 
 _BC, _LESOBC, _PROPOSED = 0, 1, 2
 
@@ -46,23 +46,17 @@ def barrier_term(e1, k_a, k_b, clip):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _backstepping(kind, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work):
+def _backstepping(kind, y, v, x3_hat, q_d, qd_d, qdd_d, ka, kad, kadd, kb, kbd, kbdd, K1, K2, clip, nominal,
+                  work, u, z1, z2, kappa):
     n = y.shape[0]
     nn = n * n
-    M = model[:nn]
-    g = model[nn : nn + n]
-    trig = model[nn + n : nn + 3 * n]
     e1 = work[:n]
     a1 = work[n : 2 * n]
     a1d = work[2 * n : 3 * n]
     ca = work[3 * n : 4 * n]
-    dyn = work[4 * n : 7 * n]
-    v = qd_true if kind == _BC else xhat[n : 2 * n]
-
     lam = 0.0
     lam_d = 0.0
     if kind == _PROPOSED:
-        ka, kad, kadd, kb, kbd, kbdd = bnd[0], bnd[1], bnd[2], bnd[3], bnd[4], bnd[5]
         ra = kad / ka
         rb = kbd / kb
         lam = np.sqrt(ra * ra + rb * rb)
@@ -71,45 +65,55 @@ def _backstepping(kind, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, wo
             rb_d = (kbdd * kb - kbd * kbd) / (kb * kb)
             lam_d = (ra * ra_d + rb * rb_d) / lam
     for i in range(n):
-        k1 = gains[i] + lam
-        e = y[i] - ref[i]
-        ed = v[i] - ref[n + i]
+        k1 = K1[i] + lam
+        e = y[i] - q_d[i]
+        ed = v[i] - qd_d[i]
         e1[i] = e
-        a1[i] = ref[n + i] - k1 * e
-        a1d[i] = ref[2 * n + i] - k1 * ed - lam_d * e
-    coriolis_times_into(trig, v, a1, nominal, ca, dyn)
-    clip = gains[2 * n]
+        a1[i] = qd_d[i] - k1 * e
+        a1d[i] = qdd_d[i] - k1 * ed - lam_d * e
+    coriolis_times(nominal, v, a1, ca)
     for i in range(n):
         acc = 0.0
         for j in range(n):
-            acc += M[i * n + j] * a1d[j]
+            acc += nominal[i * n + j] * a1d[j]
         e2 = v[i] - a1[i]
-        ui = -gains[n + i] * e2 + ca[i] + g[i] + acc
+        ui = -K2[i] * e2 + ca[i] + nominal[nn + i] + acc
         if kind == _PROPOSED:
-            ui -= barrier_term(e1[i], bnd[0], bnd[3], clip)
+            kap = barrier_term(e1[i], ka, kb, clip)
+            kappa[i] = kap
+            ui -= kap
         else:
             ui -= e1[i]
         if kind != _BC:
             dist = 0.0
             for j in range(n):
-                dist += M[i * n + j] * xhat[2 * n + j]
+                dist += nominal[i * n + j] * x3_hat[j]
             ui -= dist
+            z1[i] = e1[i]
+            z2[i] = e2
         u[i] = ui
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def bc_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work):
-    """Backstepping control (BC): full state, no observer, no disturbance compensation."""
-    _backstepping(_BC, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work)
+def bc_output(y, qd_true, q_d, qd_d, qdd_d, K1, K2, barrier_clip, nominal, work, u_law):
+    """Backstepping control (BC): full state (reads the true velocity), no disturbance compensation."""
+    n = y.shape[0]
+    _backstepping(_BC, y, qd_true, work[4 * n : 5 * n], q_d, qd_d, qdd_d, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0,
+                  K1, K2, barrier_clip, nominal, work, u_law, work[5 * n : 6 * n], work[6 * n : 7 * n],
+                  work[7 * n : 8 * n])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def lesobc_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work):
+def lesobc_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, K1, K2, barrier_clip, nominal, work, u_law, z1, z2_hat):
     """Backstepping on the LESO's velocity, minus M(y) x3_hat (LESOBC)."""
-    _backstepping(_LESOBC, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work)
+    n = y.shape[0]
+    _backstepping(_LESOBC, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, 1.0, 0.0, 0.0, 1.0, 0.0, 0.0, K1, K2,
+                  barrier_clip, nominal, work, u_law, z1, z2_hat, work[4 * n : 5 * n])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def proposed_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work):
+def proposed_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b, k_b_dot, k_b_ddot, K1, K2,
+                    barrier_clip, nominal, work, u_law, z1, z2_hat, barrier):
     """The paper's LESO + barrier-Lyapunov backstepping law (eqs. 18-21) with the barrier guard."""
-    _backstepping(_PROPOSED, y, qd_true, xhat, ref, bnd, nominal, model, gains, u, work)
+    _backstepping(_PROPOSED, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b, k_b_dot, k_b_ddot,
+                  K1, K2, barrier_clip, nominal, work, u_law, z1, z2_hat, barrier)

@@ -16,39 +16,33 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.controller import model_length, nominal_model_into
-from blf_gym.dynamics import ldl_solve_factored, coriolis_times_into
+from blf_gym.blocks import coriolis_times, gravity, mass_solve, model_length, nominal_length, nominal_model_into
 
 __all__ = ["leso_rhs", "LESO"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def leso_rhs(y, xhat, u, nominal, model, gains, dxhat, work):
-    """Observer right-hand side (blf_gym observer signature); ``gains = [k0]``."""
+def leso_rhs(y, u, x1_hat, x2_hat, x3_hat, k0, nominal, work, d_x1_hat, d_x2_hat, d_x3_hat):
+    """The observer's ``rhs`` over named signals (blf_gym.blocks); ``k0`` is its bandwidth, 1/s."""
     n = y.shape[0]
-    k0 = gains[0]
-    nn = n * n
-    g = model[nn : nn + n]
-    trig = model[nn + n : nn + 3 * n]
-    chol = model[nn + 3 * n : 2 * nn + 3 * n]
     c = work[:n]
-    r = work[n : 2 * n]
-    acc = work[2 * n : 3 * n]
-    dyn = work[3 * n : 6 * n]
-    x2 = xhat[n : 2 * n]
+    g = work[n : 2 * n]
+    r = work[2 * n : 3 * n]
+    acc = work[3 * n : 4 * n]
     # F(y, x2_hat) + M^-1 u = M^-1 (u - C(y, x2_hat) x2_hat - G(y))
-    coriolis_times_into(trig, x2, x2, nominal, c, dyn)
+    coriolis_times(nominal, x2_hat, x2_hat, c)
+    gravity(nominal, g)
     for i in range(n):
         r[i] = u[i] - c[i] - g[i]
-    ldl_solve_factored(chol, r, acc)
+    mass_solve(nominal, r, acc)
     l1 = 3.0 * k0
     l2 = 3.0 * k0 * k0
     l3 = k0 * k0 * k0
     for i in range(n):
-        err = y[i] - xhat[i]
-        dxhat[i] = xhat[n + i] + l1 * err
-        dxhat[n + i] = acc[i] + xhat[2 * n + i] + l2 * err
-        dxhat[2 * n + i] = l3 * err
+        err = y[i] - x1_hat[i]
+        d_x1_hat[i] = x2_hat[i] + l1 * err
+        d_x2_hat[i] = acc[i] + x3_hat[i] + l2 * err
+        d_x3_hat[i] = l3 * err
 
 
 class LESO:
@@ -84,20 +78,31 @@ class LESO:
 @njit(cache=True, error_model="numpy")
 def _leso_ode3(xhat, y, u, nominal, gains, dt, work):
     m = xhat.shape[0]
-    model = np.empty(model_length(y.shape[0]))
+    n = y.shape[0]
+    k0 = gains[0]
+    model = np.zeros(nominal_length(n))
     nominal_model_into(y, nominal, model, work)
+    o = model_length(n)
+    for i in range(2 * n + 1):
+        model[o + i] = nominal[i]
     k1 = np.empty(m)
     k2 = np.empty(m)
     k3 = np.empty(m)
     xs = np.empty(m)
-    leso_rhs(y, xhat, u, nominal, model, gains, k1, work)
+    _rhs(y, u, xhat, k0, model, work, k1)
     for i in range(m):
         xs[i] = xhat[i] + 0.5 * dt * k1[i]
-    leso_rhs(y, xs, u, nominal, model, gains, k2, work)
+    _rhs(y, u, xs, k0, model, work, k2)
     for i in range(m):
         xs[i] = xhat[i] + 0.75 * dt * k2[i]
-    leso_rhs(y, xs, u, nominal, model, gains, k3, work)
+    _rhs(y, u, xs, k0, model, work, k3)
     out = np.empty(m)
     for i in range(m):
         out[i] = xhat[i] + dt * ((2.0 / 9.0) * k1[i] + (1.0 / 3.0) * k2[i] + (4.0 / 9.0) * k3[i])
     return out
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _rhs(y, u, xhat, k0, nominal, work, dx):
+    n = y.shape[0]
+    leso_rhs(y, u, xhat[:n], xhat[n : 2 * n], xhat[2 * n :], k0, nominal, work, dx[:n], dx[n : 2 * n], dx[2 * n :])

@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from blf_gym.controller import model_length, nominal_model_into, work_length
+from blf_gym.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
 from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index
 from blf_gym.params import BoundParams
 
@@ -64,7 +64,7 @@ class BaselinePolicy:
     ) -> None:
         from dataclasses import fields as _fields
 
-        from blf_gym.controller import available_controllers, make_controller
+        from blf_gym.controller import available_controllers, make_controller, make_observer
 
         names = [c for c in available_controllers() if c != "none"]
         if controller not in names:
@@ -75,18 +75,25 @@ class BaselinePolicy:
             raise ValueError(f"max_torque must be a positive number of N m, got {max_torque!r}")
         self.name = controller
         self.gains = gains or ControllerGains()
-        # the registered plug-in, built with these gains: its compiled law and packed gains
-        self.inner = make_controller(controller, **{f.name: getattr(self.gains, f.name) for f in _fields(self.gains)})
-        self.law = self.inner.law
         self.obs_gains = observer or ObserverGains()
+        # the registered plug-in, built with these gains (a plug-in of another package takes its
+        # own defaults), connected to the LESO this policy integrates itself
+        kw = {f.name: getattr(self.gains, f.name) for f in _fields(self.gains)} if controller in ("bc", "lesobc", "proposed") else {}
+        self.inner = make_controller(controller, **kw)
+        if self.inner.states:
+            raise ValueError(f"BaselinePolicy samples stateless laws; {controller!r} has states "
+                             f"{list(self.inner.states)}: score it on the inner path (controller={controller!r})")
+        self._conn = connect(self.inner, make_observer("leso", k0=self.obs_gains.k0), _N)
         self.bounds = bounds or BoundParams()
         self.dt = float(dt)
         self.max_torque = float(max_torque)
-        self._packed_gains = self.inner.gains
         self._nominal = self.inner.nominal.pack()
         self._k0 = np.array([self.obs_gains.k0])
-        self._model = np.empty(model_length(_N))
-        self._work = np.empty(work_length(_N))
+        self._nom = np.zeros(nominal_length(_N))
+        self._nom[model_length(_N) : model_length(_N) + self._nominal.size] = self._nominal
+        self._work = np.zeros(work_length(_N))
+        self._cout = np.zeros(self._conn.n_out)
+        self._none = np.zeros(0)
         self._xhat: np.ndarray | None = None
         self._y_prev: np.ndarray | None = None
         self._u_prev: np.ndarray | None = None
@@ -152,11 +159,11 @@ class BaselinePolicy:
                 qd = _unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
             else:
                 qd = np.zeros(_N)
-            nominal_model_into(y, self._nominal, self._model, self._work)
-            out = np.empty(_N)
-            self.law(0.0, y, qd, self._xhat[i], ref, bnd, self._nominal, self._model,
-                     self._packed_gains, out, self._work)
-            u[i] = np.clip(out, -self.max_torque, self.max_torque)
+            nominal_model_into(y, self._nominal, self._nom, self._work)
+            c = self._conn
+            c.ctrl_output(0.0, y, qd, self._xhat[i], self._none, ref, bnd, self._nom, self._k0, self.inner.gains,
+                          self._none, self._cout, self._none, self._none, self._work)
+            u[i] = np.clip(self._cout[:_N], -self.max_torque, self.max_torque)
             self._y_prev[i] = y
             self._u_prev[i] = u[i]
         return u

@@ -13,15 +13,12 @@ import numpy as np
 from numba import njit
 
 from .bounds import bounds_into
-from .controller import (
-    NO_CONTROLLER,
-    InnerController,
-    Observer,
-    available_controllers,
-    available_observers,
-    make_controller,
-    make_observer,
-)
+from typing import NamedTuple
+
+from .blocks import NO_CONTROLLER, Controller, Observer
+from .controller import available_controllers, available_observers, make_controller, make_observer
+from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
+                     _R_VIOLATED, RewardWeights, step_outputs)
 from .params import DT_MIN, PRESETS, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
@@ -35,6 +32,11 @@ from .simulate import (
     SUM_E2_JOINT,
     SUM_SAMPLES,
     SUM_UN2,
+    LAST_U,
+    LAST_X3,
+    LAST_X3HAT,
+    LAST_ULAW,
+    N_LAST,
     ClosedLoop,
     divergence_message,
 )
@@ -43,84 +45,6 @@ __all__ = ["RewardWeights", "EnvCore", "OBSERVATION", "observation_layout", "obs
            "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
-
-
-@dataclass(frozen=True)
-class RewardWeights:
-    """Per-agent-step reward r = alive - tracking * E - torque * U - violation * [ended by it].
-
-    E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
-    normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
-    (u / max_torque)^2 (<= 1). With ``relative`` (below) E is a ratio to the law's error instead,
-    capped at ``relative_cap`` in size, so "max E" below is 1 or ``relative_cap``. Every step
-    inside the bounds therefore loses at most ``tracking * max E + torque - alive`` against the
-    alive term. Ending an episode early by a violation
-    never pays when either
-
-    * ``alive >= tracking * max E + torque`` (the default: every step inside the bounds earns
-      r >= 0), or
-    * ``violation >= (tracking * max E + torque - alive) * max_episode_steps``: the terminal penalty
-      outweighs anything the rest of the episode could have cost (any discount factor).
-
-    The env checks this at construction. The second form keeps rewards near zero, which suits
-    critics when the tracking weight is large (the residual configs use it).
-    """
-
-    tracking: float = 1.0
-    """Weight of the normalized squared tracking error (>= 0)."""
-    torque: float = 0.01
-    """Weight of the normalized squared torque (>= 0)."""
-    alive: float | None = None
-    """Reward per step for staying inside the bounds (>= 0); default tracking * max E + torque."""
-    violation: float = 100.0
-    """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
-    relative: bool = False
-    """Measure tracking against the law, in the evaluation metric's own terms: E becomes the mean
-    over joints of E_j / E_law_j, with E_j the step's mean of e1_j^2 (the squared error itself,
-    not normalized by the bounds, like the RMSE) and E_law_j its mean over a whole episode of the
-    reference law alone on the episode's scenario (the inner controller in residual mode, the
-    proposed law in plain mode; no measurement noise). A policy at the law's level then loses
-    about ``tracking`` per step on every scenario and joint, whatever their error scale, and the
-    episode's sum of E is its MSE relative to the law's. Each ratio is capped at
-    ``relative_cap``."""
-    relative_cap: float = 100.0
-    """Cap of each joint's ratio when ``relative`` (> 0); |E| <= relative_cap inside the bounds."""
-    law_baseline: bool = False
-    """With ``relative``: subtract the reference law's own squared error at the same agent step,
-    so E_j = (e1_j^2 - e1_law_j^2) / E_law_j (each step's mean over its 1 ms samples). A policy at
-    the law's level then gets about 0 per step, and the large, policy-independent swings of the
-    error (the start-up transient, the elbow folds) cancel; the episode's sum of E is still its
-    MSE relative to the law's, shifted by a constant. Variance reduction for learning."""
-
-    def __post_init__(self) -> None:
-        o = "RewardWeights"
-        for name in ("relative", "law_baseline"):
-            object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
-        object.__setattr__(self, "relative_cap",
-                           check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
-        for name in ("tracking", "torque", "violation"):
-            object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
-        if self.alive is None:
-            object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
-        object.__setattr__(self, "alive", check_real(o, "alive", self.alive, lo=0.0, none_ok=False,
-                                                     hint=" (or None: tracking * max E + torque)"))
-        if self.law_baseline and not self.relative:
-            raise ValueError("RewardWeights.law_baseline needs relative=True")
-
-    @property
-    def max_error(self) -> float:
-        """The largest E inside the bounds: 1, or ``relative_cap`` when ``relative``."""
-        return float(self.relative_cap) if self.relative else 1.0
-
-    def check_episode(self, max_episode_steps: int) -> None:
-        """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
-        deficit = self.tracking * self.max_error + self.torque - self.alive
-        if deficit > 0 and self.violation < deficit * max_episode_steps:
-            raise ValueError(
-                f"RewardWeights: with alive = {self.alive!r} < tracking * max E + torque = "
-                f"{self.tracking * self.max_error + self.torque}, violation must be >= (tracking * max E "
-                f"+ torque - alive) * max_episode_steps = {deficit * max_episode_steps:g} so that a "
-                f"violation never pays; got violation = {self.violation!r}")
 
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
@@ -134,40 +58,72 @@ _ANGLE_CLIP = 4.0 * math.pi
 _ERR_CLIP = 10.0
 
 
-OBSERVATION: tuple[tuple[str, "int | None", str, str, float, float, bool], ...] = (
-    # (group, entries: None = one per joint, name ("{j}" = the joint, from 1), unit, low, high, privileged)
-    ("y", None, "y_{j} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP, False),
-    ("q_d", None, "q_d_{j}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP, False),
-    ("qd_d", None, f"qd_d_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY, False),
-    ("qdd_d", None, f"qdd_d_{{j}} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION,
-     SQUASH_REF_ACCELERATION, False),
-    ("e1_normalized", None, "(y_{j} - q_d_{j}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP,
-     False),
-    ("k_a", 1, "k_a", "rad", 0.0, 10.0, False),
-    ("k_b", 1, "k_b", "rad", 0.0, 10.0, False),
-    ("k_a_rate", 1, "k_a'", "rad/s", -10.0, 10.0, False),
-    ("k_b_rate", 1, "k_b'", "rad/s", -10.0, 10.0, False),
-    ("phase", 2, "sin(2 pi f t)|cos(2 pi f t)", "-", -1.0, 1.0, False),
-    ("time", 1, "t / duration", "-", 0.0, 1.0, False),
-    ("u", None, "u_{j} / max_torque (last applied)", "-", -1.0, 1.0, False),
-    ("x2_hat", None, f"x2_hat_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY,
-     False),
-    ("x3_hat", None, f"x3_hat_{{j}} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
-     SQUASH_DISTURBANCE, False),
-    ("qd", None, f"qd_{{j}} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY, True),
-    ("x3", None, f"x3_{{j}} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
-     SQUASH_DISTURBANCE, True),
+class Entry(NamedTuple):
+    """One group of observation entries."""
+
+    group: str
+    count: "int | None"
+    """Entries: None = one per joint, else that many."""
+    name: str
+    """Label ("{j}" = the joint, from 1; "a|b" names each of several entries)."""
+    unit: str
+    low: float
+    high: float
+    kind: str = "base"
+    """"base" (always there), "privileged" (with privileged=True) or "optional" (opt-in by name
+    through the env's ``observation_extras``)."""
+    source: str = ""
+    """Where an optional entry's value comes from: ``controller:<output>`` (a controller output at the
+    start of the last integration step), ``observer:<state>`` or ``last:<column>`` (a column of
+    blf_gym.status.LAST_COLUMNS)."""
+    scale: float = 0.0
+    """For an optional entry: > 0 squashes the value as scale * tanh(value / scale); < 0 divides
+    it by the arm's max_torque; 0 passes it as it is (clipped to the box)."""
+
+
+OBSERVATION: tuple[Entry, ...] = (
+    Entry("y", None, "y_{j} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP),
+    Entry("q_d", None, "q_d_{j}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP),
+    Entry("qd_d", None, f"qd_d_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY),
+    Entry("qdd_d", None, f"qdd_d_{{j}} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION,
+          SQUASH_REF_ACCELERATION),
+    Entry("e1_normalized", None, "(y_{j} - q_d_{j}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP),
+    Entry("k_a", 1, "k_a", "rad", 0.0, 10.0),
+    Entry("k_b", 1, "k_b", "rad", 0.0, 10.0),
+    Entry("k_a_rate", 1, "k_a'", "rad/s", -10.0, 10.0),
+    Entry("k_b_rate", 1, "k_b'", "rad/s", -10.0, 10.0),
+    Entry("phase", 2, "sin(2 pi f t)|cos(2 pi f t)", "-", -1.0, 1.0),
+    Entry("time", 1, "t / duration", "-", 0.0, 1.0),
+    Entry("u", None, "u_{j} / max_torque (last applied)", "-", -1.0, 1.0),
+    Entry("x2_hat", None, f"x2_hat_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY),
+    Entry("x3_hat", None, f"x3_hat_{{j}} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
+          SQUASH_DISTURBANCE),
+    Entry("qd", None, f"qd_{{j}} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY,
+          "privileged"),
+    Entry("x3", None, f"x3_{{j}} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
+          SQUASH_DISTURBANCE, "privileged"),
+    # opt-in entries (observation_extras=(...)): computed from named signals, after the others
+    Entry("u_law", None, "u_law_{j} / max_torque (the inner law's torque, last step)", "-", -1.0, 1.0, "optional",
+          "last:u_law", -1.0),
+    Entry("z2_hat", None, f"z2_hat_{{j}} = x2_hat - alpha1 (the law's, squashed {SQUASH_VELOCITY:g})", "rad/s",
+          -SQUASH_VELOCITY, SQUASH_VELOCITY, "optional", "controller:z2_hat", SQUASH_VELOCITY),
 )
 """The observation vector, declared once, in order. The Python side (:func:`observation_index`,
 :func:`observation_layout`, the env's box and docstring, the baseline policies) and the compiled
-filler (``_observe_batch``, through the ``_OFF_*`` offsets) read it. Privileged groups come last
-and exist only with ``privileged=True``."""
+filler (``_observe_batch``, through the ``_OFF_*`` offsets) read it. Privileged groups come after
+the base ones and exist only with ``privileged=True``; optional groups come last, in the order the
+env's ``observation_extras`` names them, and are filled from their ``source``."""
+
+
+def optional_observations() -> list[str]:
+    """The names accepted by the env's ``observation_extras`` (the optional groups of OBSERVATION)."""
+    return [e.group for e in OBSERVATION if e.kind == "optional"]
 
 
 def _offsets() -> dict[str, tuple[int, int]]:
     """Each group's start as (a, b): the offset is a * n + b for n joints."""
     out, a, b = {}, 0, 0
-    for group, count, *_ in OBSERVATION:
+    for group, count, *_ in (e for e in OBSERVATION if e.kind != "optional"):
         out[group] = (a, b)
         if count is None:
             a += 1
@@ -185,26 +141,32 @@ _OFF_PHASE, _OFF_TIME, _OFF_U, _OFF_X2H, _OFF_X3H = _OFF["phase"], _OFF["time"],
 _OFF_QD, _OFF_X3 = _OFF["qd"], _OFF["x3"]
 
 
-def observation_index(n: int = 3) -> dict[str, slice]:
-    """Where each group of :data:`OBSERVATION` sits in the observation vector."""
-    out = {}
-    for group, count, *_ in OBSERVATION:
-        a, b = _OFF[group]
-        out[group] = slice(a * n + b, a * n + b + (n if count is None else count))
+def _groups(privileged: bool, extras: Sequence[str]) -> list[Entry]:
+    rows = [e for e in OBSERVATION if e.kind == "base" or (privileged and e.kind == "privileged")]
+    by = {e.group: e for e in OBSERVATION if e.kind == "optional"}
+    return rows + [by[g] for g in extras]
+
+
+def observation_index(n: int = 3, privileged: bool = True, extras: Sequence[str] = ()) -> dict[str, slice]:
+    """Where each group of :data:`OBSERVATION` sits in the observation vector (with the privileged
+    groups unless ``privileged=False``, and the optional ones named in ``extras``)."""
+    out, o = {}, 0
+    for e in _groups(privileged, extras):
+        m = n if e.count is None else e.count
+        out[e.group] = slice(o, o + m)
+        o += m
     return out
 
 
-def observation_layout(n: int = 3, privileged: bool = False) -> list[tuple[str, str, float, float]]:
+def observation_layout(n: int = 3, privileged: bool = False, extras: Sequence[str] = ()) -> list[tuple[str, str, float, float]]:
     """(name, unit, low, high) of every observation entry, in order."""
     rows: list[tuple[str, str, float, float]] = []
-    for group, count, name, unit, lo, hi, priv in OBSERVATION:
-        if priv and not privileged:
-            continue
-        if count is None:
-            rows += [(name.format(j=j + 1), unit, lo, hi) for j in range(n)]
+    for e in _groups(privileged, extras):
+        if e.count is None:
+            rows += [(e.name.format(j=j + 1), e.unit, e.low, e.high) for j in range(n)]
         else:
-            names = name.split("|")
-            rows += [(names[i] if len(names) == count else name, unit, lo, hi) for i in range(count)]
+            names = e.name.split("|")
+            rows += [(names[i] if len(names) == e.count else e.name, e.unit, e.low, e.high) for i in range(e.count)]
     return rows
 
 
@@ -219,7 +181,7 @@ def _sq(x, c):
 
 
 @njit(cache=True, error_model="numpy")
-def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, out, ref, bnd):
+def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, out, ref, bnd, o2, o3):
     """Fill ``out`` (N, obs_dim) with the entries of :data:`OBSERVATION` (offsets from its
     declaration), and ``ref`` / ``bnd`` with the reference and bounds at ``t``."""
     N = X.shape[0]
@@ -250,9 +212,9 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
         o[_at(_OFF_PHASE, n) + 1] = np.cos(ph)
         o[_at(_OFF_TIME, n)] = min(max(t[b] / dur[b], 0.0), 1.0)
         for j in range(n):
-            o[_at(_OFF_U, n) + j] = min(max(last[b, j] / umax[b], -1.0), 1.0)
-            o[_at(_OFF_X2H, n) + j] = _sq(X[b, 3 * n + j], SQUASH_VELOCITY)
-            o[_at(_OFF_X3H, n) + j] = _sq(X[b, 4 * n + j], SQUASH_DISTURBANCE)
+            o[_at(_OFF_U, n) + j] = min(max(last[b, LAST_U * n + j] / umax[b], -1.0), 1.0)
+            o[_at(_OFF_X2H, n) + j] = _sq(X[b, o2 + j], SQUASH_VELOCITY)
+            o[_at(_OFF_X3H, n) + j] = _sq(X[b, o3 + j], SQUASH_DISTURBANCE)
         if privileged:
             for j in range(n):
                 o[_at(_OFF_QD, n) + j] = _sq(X[b, n + j], SQUASH_VELOCITY)
@@ -261,11 +223,11 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
 
 @njit(cache=True, error_model="numpy")
 def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd,
-                 low, high, obs, state):
+                 low, high, obs, state, o2, o3):
     """:func:`_observe_batch`, then the float32 observations clipped to the box (float32 rounding
     at its edges) into ``obs``, and per joint [e1, g_upper, g_lower] into ``state`` (N, 3n), in
     the g <= 0 convention (positive means the bound is broken). One compiled call per step."""
-    _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd)
+    _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd, o2, o3)
     N, m = obs64.shape
     n = last_x3.shape[1]
     for b in range(N):
@@ -316,52 +278,6 @@ def _clip_finite(a):
     return True
 
 
-# rows of _step_outputs' result
-_R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_PENALTY, _R_ALIVE = range(8)
-
-
-@njit(cache=True, error_model="numpy")
-def _step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
-    """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
-    the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
-    violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
-    diverged."""
-    N = status.shape[0]
-    n = law_e2.shape[1]
-    relative = wvec[0] > 0.0
-    cap, alive, w_tracking, w_torque, w_violation = wvec[1], wvec[2], wvec[3], wvec[4], wvec[5]
-    terminate_on_violation = wvec[6] > 0.0
-    flags = 0
-    for b in range(N):
-        samples = max(sums[b, SUM_SAMPLES], 1.0)
-        if relative:
-            acc = 0.0
-            for j in range(n):
-                # base is zero unless law_baseline: then the law's own value at this agent step
-                r = (sums[b, SUM_E2_JOINT + j] / samples - base[b, j]) / law_e2[b, j]
-                acc += min(max(r, -cap), cap)
-            tr = acc / n
-        else:
-            tr = sums[b, SUM_EN2] / (samples * n)
-        tq = sums[b, SUM_UN2] / (samples * n)
-        v = status[b, ST_VIOL_STEPS] > 0
-        term = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
-        pen = w_violation if term else 0.0
-        out[_R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
-        out[_R_TERMINATED, b] = 1.0 if term else 0.0
-        out[_R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
-        out[_R_VIOLATED, b] = 1.0 if v else 0.0
-        out[_R_TRACKING, b] = -w_tracking * tr
-        out[_R_TORQUE, b] = -w_torque * tq
-        out[_R_PENALTY, b] = -pen
-        out[_R_ALIVE, b] = alive
-        if term or out[_R_TRUNCATED, b] > 0.0:
-            flags |= 1
-        if status[b, ST_DIVERGED] != 0:
-            flags |= 2
-    return flags
-
-
 def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
     """ValueError naming any keyword argument the env does not know, with the accepted ones."""
     import inspect
@@ -384,7 +300,7 @@ class EnvCore:
         self,
         num_envs: int,
         scenario: "str | Scenario" = "paper-0.1hz",
-        controller: "str | InnerController | None" = None,
+        controller: "str | Controller | None" = None,
         observer: "str | Observer" = "leso",
         residual_scale: float = 2.0,
         control_period: float = 0.01,
@@ -396,6 +312,7 @@ class EnvCore:
         dt: float | None = None,
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
+        observation_extras: Sequence[str] = (),
         threads: int | None = None,
         record: bool = False,
         single: bool = False,
@@ -411,12 +328,21 @@ class EnvCore:
         if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
             raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
                              f"blf_gym.params.Scenario, got {scenario!r}")
-        if not (controller is None or isinstance(controller, (str, InnerController))):
+        if not (controller is None or isinstance(controller, (str, Controller))):
             raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
-                             f"blf_gym.controller.InnerController, got {controller!r}")
+                             f"blf_gym.blocks.Controller, got {controller!r}")
         if not isinstance(observer, (str, Observer)):
             raise ValueError(f"{o} observer must be one of {available_observers()} or a "
-                             f"blf_gym.controller.Observer, got {observer!r}")
+                             f"blf_gym.blocks.Observer, got {observer!r}")
+        optional = optional_observations()
+        if (isinstance(observation_extras, (str, bytes)) or not isinstance(observation_extras, Sequence)
+                or not all(isinstance(g, str) for g in observation_extras)):
+            raise ValueError(f"{o} observation_extras must be a sequence of names from {optional}, "
+                             f"got {observation_extras!r}")
+        bad = [g for g in observation_extras if g not in optional]
+        if bad or len(set(observation_extras)) != len(observation_extras):
+            raise ValueError(f"{o} observation_extras must name each optional entry at most once, from "
+                             f"{optional}; got {list(observation_extras)!r}")
         residual_scale = check_real(o, "residual_scale", residual_scale, lo=0.0, lo_open=True, unit="N m")
         control_period = check_real(o, "control_period", control_period, lo=0.0, lo_open=True, unit="s")
         privileged = check_bool(o, "privileged", privileged)
@@ -486,12 +412,17 @@ class EnvCore:
         reward_weights.check_episode(self.max_episode_steps)
         self.weights = reward_weights
         w = reward_weights
-        self._wvec = np.array([float(w.relative), w.relative_cap, w.alive, w.tracking, w.torque, w.violation,
-                               float(self.terminate_on_violation)])
+        self._wvec = reward_weights.pack(self.terminate_on_violation)
         self.n = self.base.arm.n_links
         self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, self.observer, threads=threads)
-        self.obs_dim = len(observation_layout(self.n, self.privileged))
-        layout = observation_layout(self.n, self.privileged)
+        self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
+                            for name, (off, m) in self.loop.connection.out_offsets.items()]
+        self.observation_extras = tuple(observation_extras)
+        self._x2h, self._x3h = self._observer_offset("x2_hat"), self._observer_offset("x3_hat")
+        self._extras = [self._extra_source(g) for g in self.observation_extras]
+        layout = observation_layout(self.n, self.privileged, self.observation_extras)
+        self.obs_dim = len(layout)
+        self._base_dim = len(observation_layout(self.n, self.privileged))
         self.obs_low = np.array([r[2] for r in layout], dtype=np.float32)
         self.obs_high = np.array([r[3] for r in layout], dtype=np.float32)
         N, n = self.num_envs, self.n
@@ -514,9 +445,60 @@ class EnvCore:
         self._stds = np.zeros(N)
         self._no_base = np.zeros((N, n))
         self._noisy: list[int] = []
-        self._obs64 = np.empty((N, self.obs_dim))
+        self._obs64 = np.empty((N, self._base_dim))
         self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
         self._threads = threads
+
+    def _observer_offset(self, name: str) -> int:
+        """Where the observer's state ``name`` (n entries) sits in the loop's state rows; ValueError if
+        the observer has none (the observation reads it)."""
+        part = self.loop.connection.observer_signal(name)
+        if part is None or part[1] != self.n:
+            raise ValueError(f"{self.owner} the observation reads {name!r}, which observer {self.observer.name!r} "
+                             f"does not provide (its states: {list(self.observer.states)})")
+        return 2 * self.n + part[0]
+
+    def _extra_source(self, group: str) -> tuple[int, int, float, Entry]:
+        """(column in the loop's state or last-signals array, 0 = state / 1 = last, scale, entry) of
+        an optional observation entry, checked against the blocks in use."""
+        e = next(x for x in OBSERVATION if x.group == group)
+        kind, _, name = e.source.partition(":")
+        n = self.n
+        want = n if e.count is None else e.count
+        if kind == "observer":
+            part = self.loop.connection.observer_signal(name)
+            where, src = (None if part is None else 2 * n + part[0]), 0
+            size = None if part is None else part[1]
+        elif kind == "controller":
+            part = self.loop.connection.out_offsets.get(name)
+            where, src = (None if part is None else N_LAST * n + part[0]), 1
+            size = None if part is None else part[1]
+        elif kind == "last":
+            from .status import LAST_COLUMNS
+
+            where, src, size = (LAST_COLUMNS.index(name) * n if name in LAST_COLUMNS else None), 1, n
+        else:
+            raise ValueError(f"observation entry {group!r}: unknown source {e.source!r} (observer:, controller: "
+                             "or last:)")
+        if where is None:
+            raise ValueError(f"{self.owner} observation_extras entry {group!r} reads {e.source!r}, which "
+                             f"controller {self.controller.name!r} and observer {self.observer.name!r} do not provide")
+        if size != want:
+            raise ValueError(f"observation entry {group!r}: its source {e.source!r} has {size} entries, not {want}")
+        return where, src, e.scale, e
+
+    def _fill_extras(self, obs: np.ndarray) -> None:
+        """The optional observation entries, after the compiled ones."""
+        o = self._base_dim
+        for where, src, scale, e in self._extras:
+            m = self.n if e.count is None else e.count
+            v = (self.loop.X if src == 0 else self.loop.last)[:, where : where + m]
+            if scale > 0:
+                v = scale * np.tanh(v / scale)
+            elif scale < 0:
+                v = v / self._umax[:, None]
+            obs[:, o : o + m] = np.clip(v.astype(np.float32), self.obs_low[o : o + m], self.obs_high[o : o + m])
+            o += m
 
     # ------------------------------------------------------------------ reset
     def check_options(self, options: Any) -> dict[str, Any]:
@@ -651,7 +633,7 @@ class EnvCore:
             base = self._law_steps[np.arange(N), k]
         else:
             base = self._no_base
-        flags = _step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
+        flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         terminated = res[_R_TERMINATED] > 0.0
         truncated = res[_R_TRUNCATED] > 0.0
@@ -666,16 +648,17 @@ class EnvCore:
                 elif truncated[i]:
                     trunc_reason[i] = "time_limit"
         last = self.loop.last.copy()  # the info entries below are views of this fresh copy
-        self.last_x3[:] = last[:, 3 * n : 4 * n]
+        self.last_x3[:] = last[:, LAST_X3 * n : (LAST_X3 + 1) * n]
         info: dict[str, Any] = {
             "cost": res[_R_VIOLATED],
             "violating_samples": status[:, ST_VIOL_SAMPLES],
-            "u": last[:, :n],
-            "u_law": last[:, n : 2 * n],
+            "u": last[:, LAST_U * n : (LAST_U + 1) * n],
+            "u_law": last[:, LAST_ULAW * n : (LAST_ULAW + 1) * n],
             "u_residual": residual,
             "saturated": status[:, ST_SAT_STEPS] > 0,
-            "x3": last[:, 3 * n : 4 * n],
-            "x3_hat": last[:, 4 * n : 5 * n],
+            "x3": last[:, LAST_X3 * n : (LAST_X3 + 1) * n],
+            "x3_hat": last[:, LAST_X3HAT * n : (LAST_X3HAT + 1) * n],
+            "controller_outputs": {name: last[:, sl] for name, sl in self._out_slices},
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
             "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
@@ -753,7 +736,7 @@ class EnvCore:
         out: dict[str, Any] = {}
         for k, v in info.items():
             if type(v) is dict:
-                out[k] = {kk: vv.item(i) for kk, vv in v.items()}
+                out[k] = {kk: (vv.item(i) if vv.ndim == 1 else vv[i]) for kk, vv in v.items()}
             elif v.ndim == 1:
                 out[k] = v.item(i)  # a Python scalar (or the object itself)
             else:
@@ -782,7 +765,9 @@ class EnvCore:
         state = np.empty((N, 3 * n))
         _observe_all(X, t, b.ref, b.bnd, b.plant, self.loop.last, self.last_x3, noise, self._durations,
                      self._umax, self.privileged, self._obs64, self._ref, self._bnd, self.obs_low,
-                     self.obs_high, obs, state)
+                     self.obs_high, obs, state, self._x2h, self._x3h)
+        if self._extras:
+            self._fill_extras(obs)
         if info is not None:
             bnd = self._bnd.copy()
             info["time"] = t

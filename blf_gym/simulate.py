@@ -34,15 +34,8 @@ from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
 from .bounds import bounds_into
-from .controller import (
-    InnerController,
-    Observer,
-    make_controller,
-    make_observer,
-    model_length,
-    nominal_model_into,
-    work_length,
-)
+from .blocks import Connection, Controller, Observer, connect, model_length, nominal_length, nominal_model_into, work_length
+from .controller import make_controller, make_observer
 from .dynamics import (
     WORK_PER_LINK,
     abs_trig_into,
@@ -55,6 +48,8 @@ from .dynamics import (
     wrench_torque_into,
 )
 from .params import PLANT_TAIL, Scenario, plant_length
+from .reward import SUM_COLUMNS, SUM_E2_JOINT, SUM_EN2, SUM_ERR_MAX, SUM_SAMPLES, SUM_UN2, accumulate_sample
+from .status import LAST_COLUMNS, N_STATUS, STATUS_COLUMNS
 from .reference import reference_into
 from .uncertainty import dead_zone, force_active, friction
 
@@ -83,20 +78,10 @@ _FX, _MZ, _ONSET = _T["f_x"], _T["moment"], _T["onset"]
 _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"], _T["error_rtol"], _T["error_atol"]
 _UNSTABLE_STEPS = _T["unstable_steps"]
 
-STATUS_COLUMNS = ("steps", "diverged", "violating_steps", "first_violating_step", "saturated_steps",
-                  "violating_samples")
-"""Per-arm integer status of one kernel call, declared once: steps taken, divergence code (0, 1
-non-finite or beyond the limit, 2 numerically unstable), violating integration steps, the first
-one (global index, -1 if none), steps with a saturated torque, violating 1 ms samples."""
 ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = (
     STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
-N_STATUS = len(STATUS_COLUMNS)
-SUM_COLUMNS = ("error_estimate_max", "sum_e1_over_bound_sq", "sum_u_over_max_sq", "samples")
-"""Per-arm float sums of one kernel call, declared once: the largest ODE3 error estimate, the sums
-over 1 ms samples and joints of (e1/bound)^2 and (u/max_torque)^2, the number of samples; then,
-per joint, the sum over samples of e1^2 (rad^2)."""
-SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES = (SUM_COLUMNS.index(c) for c in SUM_COLUMNS)
-SUM_E2_JOINT = len(SUM_COLUMNS)
+LAST_U, LAST_ULAW, LAST_SAT, LAST_X3, LAST_X3HAT = (LAST_COLUMNS.index(c) for c in LAST_COLUMNS)
+N_LAST = len(LAST_COLUMNS)
 
 
 @njit(cache=True, error_model="numpy")
@@ -164,8 +149,9 @@ def _violates(e_or_q, ref, bnd, n):
 
 
 @njit(cache=True, error_model="numpy")
-def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3):
-    """Write one 1 ms sample (the channels of CHANNELS) into ``r`` (channels, n)."""
+def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3, o1, o2, o3):
+    """Write one 1 ms sample (the channels of CHANNELS) into ``r`` (channels, n). ``o1``, ``o2``,
+    ``o3`` are the offsets of x1_hat, x2_hat, x3_hat in the state, -1 for one the observer lacks."""
     n = y.shape[0]
     for i in range(n):
         r[0, i] = t
@@ -181,9 +167,9 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3):
         r[10, i] = ulaw[i]
         r[11, i] = satf[i]
         r[12, i] = x3[i]
-        r[13, i] = x[4 * n + i]
-        r[14, i] = x[3 * n + i]
-        r[15, i] = x[2 * n + i]
+        r[13, i] = x[o3 + i] if o3 >= 0 else np.nan
+        r[14, i] = x[o2 + i] if o2 >= 0 else np.nan
+        r[15, i] = x[o1 + i] if o1 >= 0 else np.nan
         r[16, i] = y[i]
 
 
@@ -214,33 +200,56 @@ def _error_ratio(ep, K3, xn, dt, atol, rtol):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _accumulate_sample(x, ref, bnd, u, umax, e2_joint, last_row, n):
-    """One 1 ms sample's reward and metric terms: adds each joint's e1^2 to ``e2_joint`` and keeps
-    the LESO's disturbance estimate in ``last_row``; returns (sum over joints of (e1/bound)^2, of
-    (u/max_torque)^2, whether the sample violates a bound)."""
-    en2 = 0.0
-    un2 = 0.0
-    bad = False
+def _stage_input(st, x, K0, K1, dt, xs):
+    """The state at which ODE3 stage ``st`` (0, 1, 2) is evaluated, into ``xs``."""
+    if st == 0:
+        for i in range(x.shape[0]):
+            xs[i] = x[i]
+    elif st == 1:
+        for i in range(x.shape[0]):
+            xs[i] = x[i] + 0.5 * dt * K0[i]
+    else:
+        for i in range(x.shape[0]):
+            xs[i] = x[i] + 0.75 * dt * K1[i]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _instability(en, noisy, sps, err_run, unstable_steps):
+    """The count of consecutive unstable steps after one check with error ratio ``en``, and whether
+    the run is now diverged (a noisy arm's check counts for its sample period's steps)."""
+    if en > 1.0:
+        err_run += 1 if not noisy else sps
+        return err_run, err_run >= unstable_steps
+    return 0, False
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
+    """At the start of step ``j`` (global ``k``), state ``x``: the constraint check of the state the
+    previous step produced and the saturation count, into the status row ``st``; returns True if
+    the arm must stop (a violation with ``terminate``)."""
+    if j > 0 and _violates(x, ref, bnd, n):
+        st[ST_VIOL_STEPS] += 1
+        if st[ST_FIRST_VIOL] < 0:
+            st[ST_FIRST_VIOL] = k
+        if terminate:
+            return True
     for i in range(n):
-        e = x[i] - ref[i]
-        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
-        en2 += en * en
-        e2_joint[i] += e * e
-        un = u[i] / umax
-        un2 += un * un
-        if e >= bnd[0] or e <= -bnd[3]:
-            bad = True
-        last_row[4 * n + i] = x[4 * n + i]
-    return en2, un2, bad
+        if satf[i] > 0.0:
+            st[ST_SAT_STEPS] += 1
+            break
+    return False
 
 
-def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg, og, ref, bnd, ulaw,
-                    u, hu, satf, dx, pw, Mp, Lp, model, wl, wo):
+def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og, ref, bnd, cout,
+                    u, hu, satf, dx, pw, Mp, Lp, wl, wo):
     """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
 
     The measurement is y = q(stage) + noise, the noise sample held over the step, so without noise
     the law and the observer see the angles at every stage like Simulink's continuous blocks.
-    ``_law`` and ``_observer`` are globals bound by :func:`_specialise`.
+    ``x`` = [q, qd, observer states, controller states]. ``_ctrl_output``, ``_obs_rhs`` and
+    ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
+    ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`.
     """
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nn = n * n
@@ -248,9 +257,12 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
     o = 2 * n + 1
     reference_into(t, rp, arm, ref)
     bounds_into(t, bp, bnd)
-    q = x[:n]
-    qd = x[n : 2 * n]
-    xh = x[2 * n :]
+    q = _fixed(x, 0, n)
+    qd = _fixed(x, n, n)
+    xo = _fixed(x, 2 * n, _NO)  # noqa: F821
+    xc = _fixed(x, 2 * n + _NO, _NC)  # noqa: F821
+    dxo = _fixed(dx, 2 * n, _NO)  # noqa: F821
+    dxc = _fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
     same_angles = True
     for i in range(n):
         y[i] = q[i] + noise_j[i]
@@ -270,19 +282,19 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
     # y == q, and when the nominal arm is the true one (the paper's cases) it equals the plant's.
     if same_angles and same_arm:
         for i in range(nn):
-            model[i] = Mp[i]
+            nom[i] = Mp[i]
         for i in range(n):
-            model[nn + i] = g[i]
+            nom[nn + i] = g[i]
         for i in range(2 * n):
-            model[nn + n + i] = trig[i]
+            nom[nn + n + i] = trig[i]
         for i in range(nn):
-            model[nn + 3 * n + i] = Lp[i]
+            nom[nn + 3 * n + i] = Lp[i]
     else:
-        nominal_model_into(y, nominal, model, pw[10 * n :])
-    _law(t, y, qd, xh, ref, bnd, nominal, model, lg, ulaw, wl)  # noqa: F821 (bound at specialisation)
+        nominal_model_into(y, _fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
+    _ctrl_output(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wl)  # noqa: F821
     umax = plant[o + _UMAX]
     for i in range(n):
-        ui = ulaw[i] + res[i]
+        ui = cout[i] + res[i]
         s = 0.0
         if ui > umax:
             ui = umax
@@ -305,38 +317,43 @@ def _stage_template(t, x, noise_j, y, res, plant, nominal, same_arm, rp, bp, lg,
                                                        plant[o + _PSI])
         dx[i] = qd[i]
     ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
-    _observer(y, xh, u, nominal, model, og, dx[2 * n :], wo)  # noqa: F821
+    _obs_rhs(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wo)  # noqa: F821
+    _ctrl_update(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wl)  # noqa: F821
 
 
 def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
                       noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
 
-    Instability check (docs/model.md, "Integration"): a step's embedded Bogacki-Shampine error
-    estimate needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement
-    noise sample, residual). Without noise it is checked at every step, and that evaluation is
-    reused as the next step's first one when the inputs stay the same (first-same-as-last); at
-    the last step of a call it is evaluated anyway, since the next call may bring new inputs. With
-    noise, whose sample changes every step, it is evaluated at every step ending a 1 ms sample
-    period (global step index, so every path checks the same steps) and counts for that many
-    steps. ``unstable_run[b]`` carries the count of consecutive unstable steps across calls, so the
-    verdict does not depend on how a run is cut into calls.
+    One step is: the stage evaluations (:func:`_stage_input`, ``_stage``), the step's bookkeeping
+    at its start (:func:`_step_bookkeeping`; at 1 ms samples also :func:`_sample`, which feeds the
+    reward's :func:`blf_gym.reward.accumulate_sample` and the record), the update
+    (:func:`_ode3_update`) and the instability check (:func:`_error_ratio`, :func:`_instability`).
+
+    Instability check (docs/model.md section 9): a step's embedded Bogacki-Shampine error estimate
+    needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement noise
+    sample, residual). Without noise it is checked at every step, and that evaluation is reused as
+    the next step's first one when the inputs stay the same (first-same-as-last); at the last step
+    of a call it is evaluated anyway, since the next call may bring new inputs. With noise, whose
+    sample changes every step, it is evaluated at every step ending a 1 ms sample period (global
+    step index, so every path checks the same steps) and counts for that many steps.
+    ``unstable_run[b]`` carries the count of consecutive unstable steps across calls, so the verdict
+    does not depend on how a run is cut into calls.
 
     Stops an arm early on divergence (state restored to the last finite one) or, when
     ``terminate``, right after the first step whose end state violates a bound. Records the
     channels of :data:`CHANNELS` into ``rec[b]`` at every step index divisible by ``sps``.
-    ``scratch`` (N, scratch_length(n)) is per-arm work space. ``_stage`` is a global bound by
-    :func:`_specialise`.
+    ``scratch`` (N, scratch_length(...)) is per-arm work space.
     """
     N = X.shape[0]
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
+    nx = _NX  # noqa: F821 (2n + observer states + controller states, bound at specialisation)
     has_noise = noise.shape[1] > 0
     for b in range(N):
-        nx = 5 * n
         # Scratch views. The kernel is compiled without NRT: it allocates nothing and views carry
         # no reference counting (which would otherwise dominate a step's cost). Every view is
-        # given a compile-time-constant shape (n = _N is bound at specialisation), so after
-        # inlining LLVM unrolls the per-joint loops of the law, observer and model.
+        # given a compile-time-constant shape, so after inlining LLVM unrolls the per-joint loops
+        # of the law, observer and model.
         w = scratch[b]
         K0 = _fixed(w, 0, nx)
         K1 = _fixed(w, nx, nx)
@@ -352,17 +369,18 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         ref = _fixed(w, o + 2 * n, 3 * n)
         bnd = _fixed(w, o + 5 * n, 6)
         o += 5 * n + 6
-        ulaw = _fixed(w, o, n)
-        u = _fixed(w, o + n, n)
-        hu = _fixed(w, o + 2 * n, n)
-        satf = _fixed(w, o + 3 * n, n)
-        x3 = _fixed(w, o + 4 * n, n)
-        o += 5 * n
+        u = _fixed(w, o, n)
+        hu = _fixed(w, o + n, n)
+        satf = _fixed(w, o + 2 * n, n)
+        x3 = _fixed(w, o + 3 * n, n)
+        o += 4 * n
+        cout = _fixed(w, o, _NOUT)  # noqa: F821 (the controller's outputs, u_law first)
+        o += _NOUT  # noqa: F821
         Mp = _fixed(w, o, n * n)
         Lp = _fixed(w, o + n * n, n * n)
         o += 2 * n * n
-        model = _fixed(w, o, model_length(n))
-        o += model_length(n)
+        nom = _fixed(w, o, nominal_length(n))
+        o += nominal_length(n)
         pw = _fixed(w, o, (10 + WORK_PER_LINK) * n + n * n)
         o += (10 + WORK_PER_LINK) * n + n * n
         wl = _fixed(w, o, work_length(n))
@@ -373,6 +391,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         # evaluated once at the end of the call unless every sample is recorded
         smp = _fixed(w, o, 4 * n)
         x = _fixed(X[b], 0, nx)
+        ulaw = _fixed(cout, 0, n)
         recording = nrec[b] < rec.shape[1]
         x3_pending = False
         res_b = residual[b]
@@ -385,6 +404,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         arm_b = plant_b[: 2 * n + 1]
         same_arm = True
         for i in range(2 * n + 1):
+            nom[model_length(n) + i] = nom_b[i]
             if nom_b[i] != arm_b[i]:
                 same_arm = False
         divlim = plant_b[2 * n + 1 + _DIVLIM]
@@ -401,20 +421,17 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     if noise[b, j, i] != 0.0:
                         noisy = True
         umax = plant_b[2 * n + 1 + _UMAX]
-        sum_en2 = 0.0
-        sum_un2 = 0.0
-        n_samples = 0
-        viol_samples = 0
-        e2_joint = sums[b, SUM_E2_JOINT : SUM_E2_JOINT + n]
+        st_b = status[b]
+        sm_b = sums[b]
+        for i in range(st_b.shape[0]):
+            st_b[i] = 0
+        st_b[ST_FIRST_VIOL] = -1
+        for i in range(sm_b.shape[0]):
+            sm_b[i] = 0.0
         last_b = last[b]
-        for i in range(n):
-            e2_joint[i] = 0.0
         k0 = ksteps[b]
         steps = 0
-        viol = 0
-        first_viol = -1
         diverged = 0
-        sat_steps = 0
         stopped = False
         have_k0 = False
         for j in range(n_steps):
@@ -433,18 +450,15 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     ts = t
                     kst = K0
                     if not have_k0:
-                        for i in range(nx):
-                            xs[i] = x[i]
+                        _stage_input(st, x, K0, K1, dt, xs)
                 elif st == 1:
                     ts = t + 0.5 * dt
                     kst = K1
-                    for i in range(nx):
-                        xs[i] = x[i] + 0.5 * dt * K0[i]
+                    _stage_input(st, x, K0, K1, dt, xs)
                 elif st == 2:
                     ts = t + 0.75 * dt
                     kst = K2
-                    for i in range(nx):
-                        xs[i] = x[i] + 0.75 * dt * K1[i]
+                    _stage_input(st, x, K0, K1, dt, xs)
                 else:
                     if not _ode3_update(x, K0, K1, K2, dt, divlim, xn, ep):
                         diverged = 1
@@ -458,43 +472,30 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     for i in range(nx):
                         xs[i] = xn[i]
                 if not (st == 0 and have_k0):
-                    _stage(ts, xs, nz, y, res_b, plant_b, nom_b, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
-                           ref, bnd, ulaw, u, hu, satf, kst, pw, Mp, Lp, model, wl, wo)
+                    _stage(ts, xs, nz, y, res_b, plant_b, nom, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
+                           ref, bnd, cout, u, hu, satf, kst, pw, Mp, Lp, wl, wo)
                 if st == 3:
-                    # Embedded second-order error estimate of this step. It grows without bound
-                    # when h is outside ODE3's stability region, even when the actuator limit
-                    # keeps the state finite.
+                    # the embedded error estimate grows without bound when h is outside ODE3's
+                    # stability region, even when the actuator limit keeps the state finite
                     en = _error_ratio(ep, K3, xn, dt, err_atol, err_rtol)
                     if en > err_max:
                         err_max = en
-                    if en > 1.0:
-                        err_run += 1 if not noisy else sps
-                        if err_run >= unstable_steps:
-                            diverged = 2
-                    else:
-                        err_run = 0
+                    err_run, unstable = _instability(en, noisy, sps, err_run, unstable_steps)
+                    if unstable:
+                        diverged = 2
                     continue
                 if st > 0:
                     continue
-                # bookkeeping at the step's start time t (state x): constraint check of the state
-                # the previous step produced, saturation, the 1 ms record, the last torques
-                if j > 0 and _violates(x, ref, bnd, n):
-                    viol += 1
-                    if first_viol < 0:
-                        first_viol = k
-                    if terminate:
-                        halt = True
-                        break
-                for i in range(n):
-                    if satf[i] > 0.0:
-                        sat_steps += 1
-                        break
+                # bookkeeping at the step's start time t (state x)
+                if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
+                    halt = True
+                    break
                 if k % sps == 0:
                     # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
                     if recording:
                         _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_b, x3, Mp, Lp, pw)
                         for i in range(n):
-                            last[b, 3 * n + i] = x3[i]
+                            last_b[LAST_X3 * n + i] = x3[i]
                     else:
                         for i in range(n):
                             smp[i] = x[i]
@@ -502,20 +503,21 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                             smp[2 * n + i] = K0[n + i]
                             smp[3 * n + i] = u[i]
                         x3_pending = True
-                    en2, un2, bad = _accumulate_sample(x, ref, bnd, u, umax, e2_joint, last_b, n)
-                    sum_en2 += en2
-                    sum_un2 += un2
-                    n_samples += 1
-                    if bad:
-                        viol_samples += 1
+                    if accumulate_sample(x, y, ref, bnd, u, cout, umax, sm_b, n):
+                        st_b[ST_VIOL_SAMPLES] += 1
+                    for i in range(n):
+                        last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
                     if recording:
-                        _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, x3)
+                        _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, x3,
+                                _X1H, _X2H, _X3H)  # noqa: F821
                         nrec[b] += 1
                         recording = nrec[b] < rec.shape[1]
                 for i in range(n):
-                    last[b, i] = u[i]
-                    last[b, n + i] = ulaw[i]
-                    last[b, 2 * n + i] = satf[i]
+                    last_b[LAST_U * n + i] = u[i]
+                    last_b[LAST_ULAW * n + i] = ulaw[i]
+                    last_b[LAST_SAT * n + i] = satf[i]
+                for i in range(_NOUT):  # noqa: F821
+                    last_b[N_LAST * n + i] = cout[i]
             if committed:
                 for i in range(nx):
                     x[i] = xn[i]
@@ -531,33 +533,29 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         if x3_pending:
             _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nom_b, x3, Mp, Lp, pw)
             for i in range(n):
-                last[b, 3 * n + i] = x3[i]
+                last_b[LAST_X3 * n + i] = x3[i]
         if not stopped:
             t_end = (k0 + steps) * dt
             reference_into(t_end, rp_b, arm_b, ref)
             bounds_into(t_end, bp_b, bnd)
             if _violates(x, ref, bnd, n):
-                viol += 1
-                if first_viol < 0:
-                    first_viol = k0 + steps
+                st_b[ST_VIOL_STEPS] += 1
+                if st_b[ST_FIRST_VIOL] < 0:
+                    st_b[ST_FIRST_VIOL] = k0 + steps
         ksteps[b] = k0 + steps
         unstable_run[b] = err_run
-        status[b, ST_STEPS] = steps
-        status[b, ST_DIVERGED] = diverged
-        status[b, ST_VIOL_STEPS] = viol
-        status[b, ST_FIRST_VIOL] = first_viol
-        status[b, ST_SAT_STEPS] = sat_steps
-        status[b, ST_VIOL_SAMPLES] = viol_samples
-        sums[b, SUM_ERR_MAX] = err_max
-        sums[b, SUM_EN2] = sum_en2
-        sums[b, SUM_UN2] = sum_un2
-        sums[b, SUM_SAMPLES] = n_samples
+        st_b[ST_STEPS] = steps
+        st_b[ST_DIVERGED] = diverged
+        sm_b[SUM_ERR_MAX] = err_max
 
 
-def scratch_length(n: int) -> int:
-    """Per-arm scratch the kernel needs (must match the views carved in _advance_template)."""
-    nx = 5 * n
-    return (7 * nx + 5 * n + 6 + 5 * n + 2 * n * n + model_length(n)
+def scratch_length(n: int, n_obs: int | None = None, n_ctrl: int = 0, n_out: int | None = None) -> int:
+    """Per-arm scratch the kernel needs (must match the views carved in _advance_template); the
+    default sizes are the LESO's 3n states, no controller states and the torque as only output."""
+    n_obs = 3 * n if n_obs is None else n_obs
+    n_out = n if n_out is None else n_out
+    nx = 2 * n + n_obs + n_ctrl
+    return (7 * nx + 5 * n + 6 + 4 * n + n_out + 2 * n * n + nominal_length(n)
             + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
 
 
@@ -565,7 +563,7 @@ def scratch_length(n: int) -> int:
 # specialisation: clone the templates with the law and observer bound, compile with a disk cache
 
 
-_KERNEL_MODULES = ("bounds", "controller", "dynamics", "reference", "simulate", "uncertainty")
+_KERNEL_MODULES = ("blocks", "bounds", "dynamics", "reference", "reward", "simulate", "status", "uncertainty")
 
 
 def _source_digest(*modules: types.ModuleType) -> str:
@@ -631,26 +629,23 @@ _KERNELS: dict[tuple, object] = {}
 _NOTICED: set = set()
 
 
-def _ident(fn) -> str:
-    py = fn.py_func
-    return f"{py.__module__}.{py.__name__}".replace(".", "_")
-
-
-def _specialise(law, observer_rhs, n: int):
-    key = (law, observer_rhs, n)
+def _specialise(conn: Connection):
+    """The compiled kernel for one connection (controller, observer, n): the templates cloned with
+    the generated glue and the sizes bound as globals, compiled with a disk cache."""
+    key = conn
     if key not in _KERNELS:
-        import sys
-
-        deps = [sys.modules[law.py_func.__module__], sys.modules[observer_rhs.py_func.__module__]]
-        digest = _source_digest(*deps)
-        pair = f"{_ident(law)}__{_ident(observer_rhs)}"
+        n = conn.n
+        digest = hashlib.sha1((_source_digest() + conn.digest).encode()).hexdigest()[:10]
+        pair = f"{conn.controller.name}__{conn.observer.name}"
         tag = f"{pair}__{digest}"
-        stage = _clone(_stage_template, f"stage__n{n}__{tag}", {"_law": law, "_observer": observer_rhs, "_N": n},
-                       inline="always")
-        kernel = _clone(
-            _advance_template, f"advance__n{n}__{tag}",
-            {"_stage": stage, "_N": n}, nogil=True, _nrt=False,
-        )
+        off = {k: 2 * n + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
+               for k in ("x1_hat", "x2_hat", "x3_hat")}
+        sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": 2 * n + conn.n_obs + conn.n_ctrl,
+                 "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"]}
+        stage = _clone(_stage_template, f"stage__n{n}__{tag}",
+                       {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
+                        **sizes}, inline="always")
+        kernel = _clone(_advance_template, f"advance__n{n}__{tag}", {"_stage": stage, **sizes}, nogil=True, _nrt=False)
         cache = _cache_dir(kernel)
         _remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
         _remove_stale_cache(cache, f"advance__n{n}__{pair}__", digest)
@@ -660,6 +655,32 @@ def _specialise(law, observer_rhs, n: int):
 
 # ---------------------------------------------------------------------------------------------
 # Python-side shells
+
+
+def _compile_error(conn: Connection, exc: Exception) -> str:
+    """A one-paragraph message for a kernel numba could not compile, naming the plug-in at fault
+    (each of its functions is compiled alone on the kernel's argument types to find it)."""
+    from numba import njit as _njit
+    from numba import types as _t
+
+    c, o = conn.controller, conn.observer
+    arr = _t.float64[::1]
+    for fn, params, owner in ((c.output, c._out_params, f"{c.owner}.output"),
+                              (c.update, c._upd_params, f"{c.owner}.update"),
+                              (o.rhs, o._rhs_params, f"{o.owner}.rhs")):
+        if fn is None:
+            continue
+        layouts = o.param_layout if fn is o.rhs else c.param_layout
+        sig = tuple(_t.float64 if (p == "t" or p.startswith(("k_a", "k_b")) or (p in layouts and layouts[p][1] is None))
+                    else arr for p in params)
+        try:
+            _njit(error_model="numpy")(getattr(fn, "py_func", fn)).compile(sig)
+        except Exception as e:  # noqa: BLE001
+            first = str(e).strip().splitlines()
+            return (f"{owner} could not be compiled by numba (write it as loops over numpy arrays, without "
+                    f"allocating, Python objects or unsupported calls): {' '.join(first[:3])}")
+    first = str(exc).strip().splitlines()
+    return f"the closed loop for {c.owner} + {o.owner} could not be compiled by numba: {' '.join(first[:3])}"
 
 
 class SimulationDiverged(RuntimeError):
@@ -732,7 +753,7 @@ class ClosedLoop:
     def __init__(
         self,
         scenarios: Sequence[Scenario],
-        controller: str | InnerController = "proposed",
+        controller: str | Controller = "proposed",
         observer: str | Observer = "leso",
         threads: int | None = None,
     ) -> None:
@@ -755,22 +776,54 @@ class ClosedLoop:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.threads = int(threads)
         self._pool = None
-        self._kernel = _specialise(self.controller.law, self.observer.rhs, self.n)
-        if not _is_cached(self._kernel) and self._kernel not in _NOTICED:
+        n = self.n
+        if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
+            raise ValueError("controller/observer nominal model must have as many links as the plant")
+        self.connection = connect(self.controller, self.observer, n)
+        self._kernel = _specialise(self.connection)
+        fresh = not _is_cached(self._kernel)
+        if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
             compile_notice(self.controller.name, self.observer.name, _cache_dir(self._kernel))
+        c = self.connection
         self.N = len(scenarios)
-        self.X = np.zeros((self.N, 5 * self.n))
+        self.nx = 2 * n + c.n_obs + c.n_ctrl
+        """State entries per arm: [q, qd, observer states, controller states]."""
+        self.X = np.zeros((self.N, self.nx))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
         self.unstable_run = np.zeros(self.N, dtype=np.int64)
         """Per arm, the consecutive integration steps the instability check has failed so far
         (carried across calls, reset with the arm)."""
-        self.last = np.zeros((self.N, 5 * self.n))
-        self._scratch = np.zeros((self.N, scratch_length(self.n)))
-        self._zeros_residual = np.zeros((self.N, self.n))
-        self._no_noise = np.zeros((self.N, 0, self.n))
-        self._no_record = np.zeros((self.N, 0, N_CHANNELS, self.n))
+        self.last = np.zeros((self.N, N_LAST * n + c.n_out))
+        """Per arm, the columns of blf_gym.status.LAST_COLUMNS (n each), then the controller's
+        outputs in its declared order (see :meth:`outputs`)."""
+        self._scratch = np.zeros((self.N, scratch_length(n, c.n_obs, c.n_ctrl, c.n_out)))
+        self._zeros_residual = np.zeros((self.N, n))
+        self._no_noise = np.zeros((self.N, 0, n))
+        self._no_record = np.zeros((self.N, 0, N_CHANNELS, n))
         self.set_scenarios(scenarios)
+        if fresh:
+            self._compile()
+
+    def _compile(self) -> None:
+        """Compile the kernel now (a call of zero steps), reporting a plug-in numba cannot compile as
+        a ValueError that names it."""
+        from numba.core.errors import NumbaError
+
+        X, k, last = self.X.copy(), self.ksteps.copy(), self.last.copy()
+        try:
+            self.advance(0, record_samples=0)
+        except NumbaError as exc:
+            raise ValueError(_compile_error(self.connection, exc)) from None
+        finally:
+            self.X[:], self.ksteps[:], self.last[:] = X, k, last
+
+    def outputs(self) -> dict[str, np.ndarray]:
+        """The controller's outputs at the start of the last integration step, by name ((N, size)
+        views of a copy)."""
+        base = N_LAST * self.n
+        last = self.last.copy()
+        return {name: last[:, base + off : base + off + m] for name, (off, m) in self.connection.out_offsets.items()}
 
     def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None) -> None:
         """Install scenarios (all, or the arms listed in ``which``) and reset those arms."""
@@ -787,10 +840,6 @@ class ClosedLoop:
                 law_gains=np.tile(self.controller.gains, (self.N, 1)),
                 obs_gains=np.tile(self.observer.gains, (self.N, 1)),
             )
-            if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
-                raise ValueError("controller/observer nominal model must have as many links as the plant")
-            if not np.array_equal(self.observer.nominal.pack(), self.controller.nominal.pack()):
-                raise ValueError("the controller and the observer must share one nominal model")
         b = self._batch
         for i, sc in zip(idx, scenarios):
             if sc.arm.n_links != self.n or sc.sim.dt != self.dt or sc.sim.steps_per_sample != self.steps_per_sample:
@@ -806,9 +855,11 @@ class ClosedLoop:
         n = self.n
         q_d0 = joint_reference(0.0, sc)[0]
         q0 = q_d0 + np.asarray(sc.initial_error)
+        no = self.connection.n_obs
         self.X[i] = 0.0
         self.X[i, :n] = q0
-        self.X[i, 2 * n :] = self.observer.initial(q0.copy())
+        self.X[i, 2 * n : 2 * n + no] = self.observer.initial(q0.copy())
+        self.X[i, 2 * n + no :] = self.controller.initial(q0.copy())
         self.ksteps[i] = 0
         self.unstable_run[i] = 0
         self.last[i] = 0.0
@@ -856,7 +907,7 @@ class ClosedLoop:
             record_samples = n_steps // self.steps_per_sample + 1
         rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
         nrec = np.zeros(N, dtype=np.int64)
-        status = np.empty((N, N_STATUS), dtype=np.int64)
+        status = np.zeros((N, N_STATUS), dtype=np.int64)
         sums = np.empty((N, SUM_E2_JOINT + n))
         b = self._batch
         if self.threads <= 1 or N == 1:
@@ -939,7 +990,7 @@ def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec:
 
 def simulate_batch(
     scenarios: Sequence[Scenario],
-    controller: str | InnerController = "proposed",
+    controller: str | Controller = "proposed",
     observer: str | Observer = "leso",
     noise_seeds: Sequence[int] | None = None,
     threads: int | None = None,
@@ -969,7 +1020,7 @@ def simulate_batch(
 
 def simulate(
     scenario: Scenario | str = "paper-0.1hz",
-    controller: str | InnerController = "proposed",
+    controller: str | Controller = "proposed",
     observer: str | Observer = "leso",
     noise_seed: int = 0,
     raise_on_divergence: bool = False,

@@ -288,6 +288,11 @@ BAD_KWARGS = {
     "variations": _bad_mapping("variations", VARIATIONS, bad_knob) | _unknown_key(repr),
     "reward_weights": (_bad_mapping("reward_weights", RW_FIELDS, bad_reward_field)
                        | _unknown_key(lambda k: "reward_weights")),
+    "observation_extras": st.tuples(
+        STRINGS | st.integers() | st.floats() | st.none() | BOOLS
+        | st.lists(STRINGS.filter(lambda s: s not in ("u_law", "z2_hat")), min_size=1, max_size=2)
+        | st.just(["u_law", "u_law"]) | st.lists(st.integers(), min_size=1, max_size=2),
+        st.just("observation_extras")),
     "threads": st.tuples(bad_int(1, none_ok=True), st.just("threads")),
     "render_mode": st.tuples(STRINGS.filter(lambda s: s not in ("rgb_array", "human")) | st.integers()
                              | BOOLS, st.just("render_mode")),

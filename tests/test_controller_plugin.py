@@ -1,37 +1,45 @@
-"""The controller plug-in protocol of blf_gym.controller, as a user would use it.
+"""The block protocol of blf_gym.blocks, as a user would use it, and the refusal of bad plug-ins.
 
-A user's own law is written below at module level with ``@numba.njit(cache=True)`` and the
-documented signature, wrapped as an ``InnerController`` and run in the compiled closed loop.
-This file is the example the blf_gym.controller docstring points to.
+A user's own law is written below as a plain Python function over named signals (its parameter
+names), declared as a ``Controller`` with a frozen, unit-carrying parameter dataclass, and run in
+the compiled closed loop. Every bad plug-in of the protocol's list is refused with a ValueError
+that names it and the problem, before numba sees it.
 """
 
 from __future__ import annotations
 
 import subprocess
 import sys
+from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import pytest
 
-from blf_gym.controller import InnerController, available_controllers, make_controller
+from blf_gym.blocks import Controller, Observer, connect, gravity
+from blf_gym.controller import available_controllers, make_controller, make_observer
 from blf_gym.params import ArmParams, preset
-from blf_gym.simulate import simulate
+from blf_gym.simulate import ClosedLoop, simulate
 
 KP, KD = 50.0, 1.0  # N m/rad, N m s/rad
 
 
-@numba.njit(cache=True)
-def pd_gravity_law(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u_out, work):
-    """u = -Kp (y - q_d) - Kd (x2_hat - qd_d) + G(y), with G(y) read from the shared model array.
+@dataclass(frozen=True)
+class PDGains:
+    Kp: float = field(default=KP, metadata={"unit": "N m/rad"})
+    Kd: float = field(default=KD, metadata={"unit": "N m s/rad"})
 
-    Output feedback only: the angles y and the observer's velocity estimate, never qd_true.
-    """
+
+def pd_gravity(y, x2_hat, q_d, qd_d, Kp, Kd, nominal, work, u_law):
+    """u = -Kp (y - q_d) - Kd (x2_hat - qd_d) + G(y): output feedback only, never qd_true."""
     n = y.shape[0]
-    nn = n * n
+    g = work[:n]
+    gravity(nominal, g)
     for i in range(n):
-        # model = [M(y) (n*n), G(y) (n), cos (n), sin (n), LDL^T factor of M (n*n)]
-        u_out[i] = -gains[0] * (y[i] - ref[i]) - gains[1] * (xhat[n + i] - ref[n + i]) + model[nn + i]
+        u_law[i] = -Kp * (y[i] - q_d[i]) - Kd * (x2_hat[i] - qd_d[i]) + g[i]
+
+
+def _mypd() -> Controller:
+    return Controller("mypd", pd_gravity, PDGains())
 
 
 def _gravity_by_hand(q: np.ndarray, arm: ArmParams = ArmParams()) -> np.ndarray:
@@ -50,8 +58,7 @@ def _gravity_by_hand(q: np.ndarray, arm: ArmParams = ArmParams()) -> np.ndarray:
 @pytest.fixture(scope="module")
 def runs():
     sc = preset("paper-0.1hz", duration=2.0)
-    mine = InnerController("mypd", pd_gravity_law, np.array([KP, KD]))
-    return simulate(sc, controller=mine), simulate(sc, controller="proposed")
+    return simulate(sc, controller=_mypd()), simulate(sc, controller="proposed")
 
 
 def test_gravity_by_hand_matches_a_two_link_textbook_formula():
@@ -96,9 +103,10 @@ def test_user_pd_tracks_worse_than_the_proposed_law(runs):
 
 
 def test_make_controller_passes_an_object_through_and_rejects_unknown_names():
-    mine = InnerController("mypd", pd_gravity_law, [KP, KD])
+    mine = _mypd()
     assert make_controller(mine) is mine
     assert mine.gains.dtype == np.float64 and mine.gains.tolist() == [KP, KD]
+    assert mine.param_layout == {"Kp": (0, None), "Kd": (1, None)}
     with pytest.raises(ValueError) as exc:
         make_controller("nonexistent")
     msg = str(exc.value)
@@ -111,21 +119,134 @@ def test_registered_controllers_are_available():
     names = available_controllers()
     for name in ("bc", "lesobc", "proposed", "none"):
         assert name in names
-        assert isinstance(make_controller(name), InnerController)
+        assert isinstance(make_controller(name), Controller)
     assert make_controller("bc").full_state is True
     assert make_controller("proposed").full_state is False
+    assert list(make_controller("proposed").outputs) == ["u_law", "z1", "z2_hat", "barrier"]
 
 
-def test_inner_controller_requires_a_compiled_law():
-    def plain(t, y, qd_true, xhat, ref, bnd, nominal, model, gains, u_out, work):
-        u_out[:] = 0.0
+# ---------------------------------------------------------------------------------------------
+# bad plug-ins: refused with a ValueError naming the plug-in and the problem
 
-    with pytest.raises(ValueError, match="njit"):
-        InnerController("plain", plain, [1.0])
-    with pytest.raises(ValueError, match="njit"):
-        InnerController("lam", lambda *a: None, [1.0])
-    with pytest.raises(ValueError, match="finite"):
-        InnerController("nan", pd_gravity_law, [np.nan, 1.0])
+
+def _refused(match, build):
+    with pytest.raises(ValueError, match=match) as exc:
+        build()
+    # one message about the plug-in, not a traceback out of the generated glue or numba's typing
+    assert "glue" not in str(exc.value) and "Traceback" not in str(exc.value) and "\n" not in str(exc.value)
+    return str(exc.value)
+
+
+def test_a_wrong_signature_is_refused():
+    def star(*signals):
+        pass
+
+    def default(y, u_law=None):
+        pass
+
+    msg = _refused("plain positional", lambda: Controller("star", star))
+    assert "'star'" in msg
+    _refused("has a default", lambda: Controller("dflt", default))
+    _refused("Python function", lambda: Controller("notfn", 3.0))
+
+
+def test_a_signal_no_block_provides_is_refused_at_connection():
+    # a law that reads x3_hat, paired with an observer that has only x1_hat and x2_hat
+    def reads_x3(y, x3_hat, u_law):
+        for i in range(y.shape[0]):
+            u_law[i] = -x3_hat[i]
+
+    def two_state(y, x1_hat, x2_hat, d_x1_hat, d_x2_hat):
+        for i in range(y.shape[0]):
+            d_x1_hat[i] = x2_hat[i] + 100.0 * (y[i] - x1_hat[i])
+            d_x2_hat[i] = 2500.0 * (y[i] - x1_hat[i])
+
+    law = Controller("needs_x3", reads_x3)
+    hgo = Observer("hgo2", two_state, {"x1_hat": "n", "x2_hat": "n"})
+    msg = _refused("no block provides", lambda: connect(law, hgo, 3))
+    assert "'needs_x3'" in msg and "'x3_hat'" in msg and "'hgo2'" in msg
+    _refused("no block provides", lambda: ClosedLoop([preset("paper-0.1hz")], law, hgo))
+    # with the LESO, which has x3_hat, the same law connects
+    connect(law, make_observer("leso"), 3)
+
+
+def test_a_wrong_state_size_is_refused():
+    def upd(y, d_s):
+        pass
+
+    def out(y, u_law):
+        for i in range(y.shape[0]):
+            u_law[i] = 0.0
+
+    _refused("size", lambda: Controller("neg", out, states={"s": -1}, update=upd))
+    _refused("size", lambda: Controller("weird", out, states={"s": "n^2"}, update=upd))
+    _refused("no update", lambda: Controller("noupd", out, states={"s": "n"}))
+    _refused("declares no states", lambda: Controller("noupd", out, update=upd))
+    bad_init = Controller("badinit", out, states={"s": "n"}, update=upd, initial_state=lambda y0, n: np.zeros(2))
+    _refused("initial_state must return 3", lambda: ClosedLoop([preset("paper-0.1hz")], bad_init))
+    _refused("declares no states", lambda: Observer("empty", upd, {}))
+
+
+def test_a_wrong_output_shape_or_an_unwritten_output_is_refused():
+    def short(y, u_law):
+        u_law[:] = np.zeros(2)  # two entries for three joints
+
+    def partial(y, u_law):
+        u_law[0] = 1.0  # the other joints never written
+
+    def returns(y, u_law):
+        for i in range(y.shape[0]):
+            u_law[i] = 0.0
+        return u_law
+
+    msg = _refused("failed on a trial call", lambda: connect(Controller("short", short), make_observer("leso"), 3))
+    assert "'short'" in msg
+    msg = _refused("unwritten", lambda: connect(Controller("partial", partial), make_observer("leso"), 3))
+    assert "[1, 2]" in msg
+    _refused("returns nothing", lambda: connect(Controller("returns", returns), make_observer("leso"), 3))
+    _refused("u_law", lambda: Controller("no_torque", short, outputs={"z": "n"}))
+
+
+def test_parameters_must_be_a_frozen_dataclass_with_units():
+    def out(y, Kp, u_law):
+        for i in range(y.shape[0]):
+            u_law[i] = Kp
+
+    @dataclass
+    class Loose:
+        Kp: float = field(default=1.0, metadata={"unit": "N m/rad"})
+
+    @dataclass(frozen=True)
+    class NoUnit:
+        Kp: float = 1.0
+
+    @dataclass(frozen=True)
+    class Text:
+        Kp: str = field(default="high", metadata={"unit": "-"})
+
+    _refused("frozen", lambda: Controller("loose", out, Loose()))
+    _refused("carries no unit", lambda: Controller("nounit", out, NoUnit()))
+    _refused("number", lambda: Controller("text", out, Text()))
+    _refused("frozen dataclass", lambda: Controller("dict", out, {"Kp": 1.0}))
+
+
+def test_reading_the_commanded_torque_in_the_output_is_refused():
+    def out(y, u, u_law):
+        for i in range(y.shape[0]):
+            u_law[i] = u[i]
+
+    _refused("'u'", lambda: connect(Controller("loop", out), make_observer("leso"), 3))
+
+
+def test_code_numba_cannot_compile_is_reported_against_the_plug_in():
+    def out(y, u_law):
+        names = {"a": 1.0}  # a dict of Python objects: fine in Python, not in the kernel
+        for i in range(y.shape[0]):
+            u_law[i] = names["a"] * 0.0 + str(i).__len__() * 0.0
+
+    msg = _refused("could not be compiled by numba", lambda: ClosedLoop([preset("paper-0.1hz", duration=0.01)],
+                                                                        Controller("pyobj", out)))
+    assert "'pyobj'" in msg
 
 
 def test_blf_gym_does_not_import_controllers_or_learning_libraries():

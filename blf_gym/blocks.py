@@ -1,0 +1,699 @@
+"""The closed loop as declared blocks connected by named signals (docs/extending.md).
+
+Three kinds of block make the loop: the plant (:data:`PLANT`, built in), an :class:`Observer` and
+a :class:`Controller`. Each is declared with
+
+* its own state size, as named parts (``states={"x1_hat": "n", "x2_hat": "n"}``; a size is an
+  ``int`` or ``"n"``, ``"2n"``, ... for a multiple of the number of joints);
+* a frozen parameter dataclass whose numeric fields carry their unit in the field's metadata
+  (``field(default=..., metadata={"unit": "1/s"})``), packed for the kernel in field order;
+* named input and output signals: a plug-in function's *parameter names* are the signals it reads
+  and the outputs it writes.
+
+A plug-in is plain Python: functions over numpy arrays, which the package compiles with numba into
+the closed-loop kernel (specialised per controller, observer and number of joints, cached on disk).
+They write their results into the output arrays they are handed and return nothing. Write them as
+loops over joints and use the operators below for the nominal model; they must not allocate
+(``work`` is scratch).
+
+Signals a function may read (n joints; "scalar" means a float)::
+
+    t                         scalar   time, s
+    y                         (n,)     measured joint angles, rad (true angles + noise)
+    qd_true                   (n,)     true joint velocities, rad/s (a full-state law; results say so)
+    q_d, qd_d, qdd_d          (n,)     joint reference and its derivatives, rad, rad/s, rad/s^2
+    k_a, k_a_dot, k_a_ddot    scalar   upper error bound and its rates, rad, rad/s, rad/s^2
+    k_b, k_b_dot, k_b_ddot    scalar   lower error bound (the error stays above -k_b) and rates
+    nominal                   array    the nominal model at y: pass it to the operators below
+    work                      (W,)     scratch, W = 2 n^2 + 12 n entries, undefined on entry
+    <observer state names>    (size,)  the observer's states (LESO: x1_hat, x2_hat, x3_hat)
+    <controller outputs>      (size,)  after Controller.output: u_law and the law's extra outputs
+    u                         (n,)     torque commanded to the actuators (law + residual, after the
+                                       limit, before the dead-zone); after Controller.output
+    <own parameter fields>    (len,) or scalar, from the block's parameter dataclass
+    <own state names>, state  the block's own state (its parts, or all of it)
+
+and write::
+
+    Controller.output: its declared outputs (u_law, N m, always, plus any extras)
+    Observer.rhs, Controller.update: dstate (all) or d_<state name> (a part), the time derivative
+
+Nominal-model operators at the measured angles (compiled; call them from a plug-in)::
+
+    mass_times(nominal, w, out)      out = M(y) w
+    mass_solve(nominal, b, out)      out = M(y)^-1 b
+    coriolis_times(nominal, v, w, out)  out = C(y, v) w   (C(y, x2_hat) alpha1 with v = x2_hat)
+    gravity(nominal, out)            out = G(y)
+
+Order inside one stage evaluation (every ODE3 stage): plant measurement y, reference and bounds,
+the nominal model at y, ``Controller.output``, the actuator (``u = sat(u_law + residual)``), the
+plant's acceleration, ``Observer.rhs``, ``Controller.update``. A bad plug-in is refused with a
+``ValueError`` naming it and the problem when it is built or first connected (:func:`connect`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.util
+import inspect
+import math
+import os
+import re
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from numba import njit
+
+from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
+                       mass_matrix_into)
+from .params import ArmParams
+
+__all__ = [
+    "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "Connection", "connect", "mass_times",
+    "mass_solve", "coriolis_times", "gravity", "nominal_length", "work_length", "units",
+]
+
+# ---------------------------------------------------------------------------------------------
+# the nominal model signal and its operators
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def work_length(n):
+    """Length of the ``work`` scratch signal for n joints."""
+    return 2 * n * n + 12 * n
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def model_length(n):
+    """Length of the model part of the ``nominal`` signal: [M(y) row-major (n^2), G(y) (n), cos and
+    sin of the absolute link angles (2n), the LDL^T factor of M(y) (n^2)]."""
+    return 2 * n * n + 3 * n
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def nominal_length(n):
+    """Length of the ``nominal`` signal: the model part, the nominal arm (2n + 1, ArmParams.pack())
+    and 4n entries of scratch for the operators."""
+    return 2 * n * n + 3 * n + 2 * n + 1 + 4 * n
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def nominal_model_into(y, arm, model, work):
+    """Fill the model part of a ``nominal`` signal, [M(y), G(y), cos theta, sin theta, LDL^T factor of
+    M(y)], for the arm ``arm`` (ArmParams.pack()). ``work`` needs ``n`` entries."""
+    n = y.shape[0]
+    nn = n * n
+    trig = model[nn + n : nn + 3 * n]
+    abs_trig_into(y, trig)
+    mass_matrix_into(trig, arm, model[:nn], work)
+    gravity_into(trig, arm, model[nn : nn + n], work)
+    ldl_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def mass_times(nominal, w, out):
+    """out = M(y) w, the nominal inertia at the measured angles."""
+    n = w.shape[0]
+    for i in range(n):
+        acc = 0.0
+        for j in range(n):
+            acc += nominal[i * n + j] * w[j]
+        out[i] = acc
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def mass_solve(nominal, b, out):
+    """out = M(y)^-1 b (from the LDL^T factor, no division)."""
+    n = b.shape[0]
+    o = n * n + 3 * n
+    ldl_solve_factored(nominal[o : o + n * n], b, out)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def coriolis_times(nominal, v, w, out):
+    """out = C(y, v) w with C the Christoffel-symbol Coriolis matrix of the nominal arm."""
+    n = v.shape[0]
+    nn = n * n
+    trig = nominal[nn + n : nn + 3 * n]
+    o = 2 * nn + 3 * n
+    arm = nominal[o : o + 2 * n + 1]
+    coriolis_times_into(trig, v, w, arm, out, nominal[o + 2 * n + 1 : o + 6 * n + 1])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def gravity(nominal, out):
+    """out = G(y), the nominal gravity torque at the measured angles."""
+    n = out.shape[0]
+    for i in range(n):
+        out[i] = nominal[n * n + i]
+
+
+# ---------------------------------------------------------------------------------------------
+# declarations
+
+BASE_SIGNALS: dict[str, tuple[str, str, str]] = {
+    # name: (size, unit, meaning)
+    "t": ("scalar", "s", "time"),
+    "y": ("n", "rad", "measured joint angles"),
+    "qd_true": ("n", "rad/s", "true joint velocities (full state)"),
+    "q_d": ("n", "rad", "joint reference"),
+    "qd_d": ("n", "rad/s", "its first derivative"),
+    "qdd_d": ("n", "rad/s^2", "its second derivative"),
+    "k_a": ("scalar", "rad", "upper error bound"),
+    "k_a_dot": ("scalar", "rad/s", "its rate"),
+    "k_a_ddot": ("scalar", "rad/s^2", "its second derivative"),
+    "k_b": ("scalar", "rad", "lower error bound (e1 > -k_b)"),
+    "k_b_dot": ("scalar", "rad/s", "its rate"),
+    "k_b_ddot": ("scalar", "rad/s^2", "its second derivative"),
+    "nominal": ("model", "-", "nominal model at y, for the operators"),
+    "work": ("work", "-", "scratch"),
+}
+"""Signals every plug-in function may read, whatever the other blocks are."""
+_BOUND_INDEX = {"k_a": 0, "k_a_dot": 1, "k_a_ddot": 2, "k_b": 3, "k_b_dot": 4, "k_b_ddot": 5}
+_REF_INDEX = {"q_d": 0, "qd_d": 1, "qdd_d": 2}
+_RESERVED = {*BASE_SIGNALS, "u", "state", "dstate"}
+_SIZE = re.compile(r"^\s*(\d*)\s*\*?\s*n\s*$")
+
+
+def size_of(spec: Any, n: int, what: str) -> int:
+    """An entry count from its declaration: an int >= 0, or ``"n"``, ``"2n"``, ``"2*n"``."""
+    if isinstance(spec, bool) or not isinstance(spec, (int, np.integer, str)):
+        raise ValueError(f"{what}: a size must be an int or a multiple of n such as 'n' or '2n', got {spec!r}")
+    if isinstance(spec, str):
+        m = _SIZE.match(spec)
+        if not m:
+            raise ValueError(f"{what}: a size must be an int or a multiple of n such as 'n' or '2n', got {spec!r}")
+        return int(m.group(1) or 1) * n
+    if spec < 0:
+        raise ValueError(f"{what}: a size must be >= 0, got {spec}")
+    return int(spec)
+
+
+def units(params: Any) -> dict[str, str]:
+    """Each packed field of a parameter dataclass (class or instance) and its unit."""
+    return {f.name: f.metadata.get("unit", "") for f in dataclasses.fields(params) if f.name != "nominal"}
+
+
+def _pack_params(owner: str, params: Any) -> tuple[np.ndarray, dict[str, tuple[int, int | None]]]:
+    """Packed float64 gains and, per field, (offset, length or None for a scalar)."""
+    if params is None:
+        return np.zeros(0), {}
+    if not (dataclasses.is_dataclass(params) and not isinstance(params, type)):
+        raise ValueError(f"{owner}: params must be an instance of a frozen dataclass, got {params!r}")
+    if not params.__dataclass_params__.frozen:
+        raise ValueError(f"{owner}: params must be a frozen dataclass (@dataclass(frozen=True)), "
+                         f"{type(params).__name__} is not")
+    values: list[float] = []
+    layout: dict[str, tuple[int, int | None]] = {}
+    for f in dataclasses.fields(params):
+        v = getattr(params, f.name)
+        if f.name == "nominal":
+            if not isinstance(v, ArmParams):
+                raise ValueError(f"{owner}: params.nominal must be a blf_gym.params.ArmParams, got {v!r}")
+            continue
+        if "unit" not in f.metadata:
+            raise ValueError(f"{owner}: parameter field {f.name!r} of {type(params).__name__} carries no unit; "
+                             f"declare it with field(default=..., metadata={{'unit': '...'}}) ('-' if none)")
+        if f.name in _RESERVED:
+            raise ValueError(f"{owner}: parameter field {f.name!r} shadows a signal of that name; rename it")
+        arr = np.asarray(v, dtype=object)
+        flat = arr.ravel().tolist() if arr.ndim else [v]
+        if any(isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)) for x in flat):
+            raise ValueError(f"{owner}: parameter field {f.name!r} must be a number or a tuple of numbers, got {v!r}")
+        if not all(math.isfinite(float(x)) for x in flat):
+            raise ValueError(f"{owner}: parameter field {f.name!r} must be finite, got {v!r}")
+        layout[f.name] = (len(values), None if arr.ndim == 0 else len(flat))
+        values += [float(x) for x in flat]
+    return np.array(values, dtype=np.float64), layout
+
+
+def _fn_params(owner: str, fn: Any) -> list[str]:
+    """The parameter names of a plug-in function (a plain function or a numba dispatcher)."""
+    py = getattr(fn, "py_func", fn)
+    if not inspect.isfunction(py):
+        raise ValueError(f"{owner} must be a Python function (or a numba @njit function), got {fn!r}")
+    sig = inspect.signature(py)
+    names = []
+    for p in sig.parameters.values():
+        if p.kind not in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD):
+            raise ValueError(f"{owner}: parameter {p.name!r} must be a plain positional parameter (no *args, "
+                             "**kwargs or keyword-only parameters); its name is the signal it reads or writes")
+        if p.default is not p.empty:
+            raise ValueError(f"{owner}: parameter {p.name!r} has a default; every parameter is a signal")
+        names.append(p.name)
+    return names
+
+
+def _parts(owner: str, what: str, parts: Mapping[str, Any] | None) -> dict[str, Any]:
+    parts = dict(parts or {})
+    for name, spec in parts.items():
+        if not (isinstance(name, str) and name.isidentifier()):
+            raise ValueError(f"{owner}: {what} names must be identifiers, got {name!r}")
+        if name in _RESERVED:
+            raise ValueError(f"{owner}: {what} {name!r} shadows a signal of that name; rename it")
+        size_of(spec, 3, f"{owner}: {what} {name!r}")
+    return parts
+
+
+@dataclass(frozen=True, eq=False)
+class Block:
+    """A declaration: a block's states, parameter dataclasses, inputs and outputs (documentation and
+    checks; the plant's arithmetic is built into the kernel)."""
+
+    name: str
+    states: Mapping[str, Any]
+    params: tuple[type, ...]
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    doc: str = ""
+
+
+def _plant_block() -> Block:
+    from .params import ArmParams, DeadZoneParams, ForceParams, FrictionParams
+
+    return Block("planar_arm", {"q": "n", "qd": "n"}, (ArmParams, FrictionParams, DeadZoneParams, ForceParams),
+                 inputs=("u",), outputs=("y", "qd_true"),
+                 doc="M(q) qdd = H(u) - C(q, qd) qd - G(q) - J(q)^T f_ext - tau_fric(qd)  (docs/model.md section 1)")
+
+
+PLANT = _plant_block()
+"""The plant: joint angles and velocities; torque in, measured angles (and, for full-state laws, the
+true velocities) out."""
+
+
+class _PluginBase:
+    kind = "block"
+
+    def _init_common(self, name: Any, params: Any, nominal: Any) -> None:
+        if not (isinstance(name, str) and name.isidentifier()):
+            raise ValueError(f"{self.kind} name must be an identifier string, got {name!r}")
+        owner = f"{self.kind} {name!r}"
+        gains, layout = _pack_params(owner, params)
+        if nominal is None:
+            nominal = getattr(params, "nominal", None) if params is not None else None
+            nominal = nominal if nominal is not None else ArmParams()
+        if not isinstance(nominal, ArmParams):
+            raise ValueError(f"{owner}: nominal must be a blf_gym.params.ArmParams, got {nominal!r}")
+        object.__setattr__(self, "gains", gains)
+        object.__setattr__(self, "param_layout", layout)
+        object.__setattr__(self, "nominal", nominal)
+
+    @property
+    def owner(self) -> str:
+        return f"{self.kind} {self.name!r}"
+
+    def state_size(self, n: int) -> int:
+        return sum(size_of(s, n, self.owner) for s in self.states.values())
+
+    def state_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+        out, o = {}, 0
+        for k, s in self.states.items():
+            m = size_of(s, n, self.owner)
+            out[k] = (o, m)
+            o += m
+        return out
+
+
+@dataclass(frozen=True, eq=False)
+class Controller(_PluginBase):
+    """An inner control law: ``output`` writes ``u_law`` (and any extra outputs) from signals;
+    with states, ``update`` writes their derivative, integrated by the same ODE3 stages as the
+    plant and the observer."""
+
+    name: str
+    output: Callable
+    params: Any = None
+    outputs: Mapping[str, Any] = field(default_factory=lambda: {"u_law": "n"})
+    states: Mapping[str, Any] = field(default_factory=dict)
+    update: Callable | None = None
+    initial_state: Callable | None = None
+    """(y0 (n,), n) -> the controller's state at t = 0; default zeros."""
+    nominal: ArmParams | None = None
+    """The controller's model of the arm; default ``params.nominal`` or the paper's."""
+    kind = "controller"
+
+    def __post_init__(self) -> None:
+        self._init_common(self.name, self.params, self.nominal)
+        o = self.owner
+        outs = _parts(o, "output", self.outputs)
+        if "u_law" not in outs or outs["u_law"] != "n":
+            raise ValueError(f"{o}: outputs must declare the torque 'u_law' with size 'n', got {dict(self.outputs)}")
+        object.__setattr__(self, "outputs", outs)
+        object.__setattr__(self, "states", _parts(o, "state", self.states))
+        clash = set(outs) & set(self.states) | (set(outs) | set(self.states)) & set(self.param_layout)
+        if clash:
+            raise ValueError(f"{o}: the names {sorted(clash)} are declared twice (outputs, states, parameters)")
+        if self.states and self.update is None:
+            raise ValueError(f"{o} has states {list(self.states)} but no update function for their derivative")
+        if self.update is not None and not self.states:
+            raise ValueError(f"{o} has an update function but declares no states")
+        if self.initial_state is not None and not callable(self.initial_state):
+            raise ValueError(f"{o}: initial_state must be callable (y0, n) -> state, got {self.initial_state!r}")
+        object.__setattr__(self, "_out_params", _fn_params(f"{o}.output", self.output))
+        object.__setattr__(self, "_upd_params", _fn_params(f"{o}.update", self.update) if self.update else [])
+
+    @property
+    def full_state(self) -> bool:
+        """True if the law reads the true velocity (BC); results say so."""
+        return "qd_true" in self._out_params or "qd_true" in self._upd_params
+
+    def output_size(self, n: int) -> int:
+        return sum(size_of(s, n, self.owner) for s in self.outputs.values())
+
+    def output_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+        out, o = {}, 0
+        for k, s in self.outputs.items():
+            m = size_of(s, n, self.owner)
+            out[k] = (o, m)
+            o += m
+        return out
+
+    def initial(self, y0: np.ndarray) -> np.ndarray:
+        n = y0.shape[0]
+        m = self.state_size(n)
+        if self.initial_state is None:
+            return np.zeros(m)
+        x = np.asarray(self.initial_state(y0.copy(), n), dtype=np.float64).ravel()
+        if x.shape != (m,) or not np.all(np.isfinite(x)):
+            raise ValueError(f"{self.owner}: initial_state must return {m} finite numbers, got {x!r}")
+        return x
+
+
+@dataclass(frozen=True, eq=False)
+class Observer(_PluginBase):
+    """A state observer: ``rhs`` writes the derivative of its states from signals (any number of
+    states, declared as named parts that later blocks read by name)."""
+
+    name: str
+    rhs: Callable
+    states: Mapping[str, Any]
+    params: Any = None
+    initial_state: Callable | None = None
+    """(y0 (n,), n) -> the observer's state at t = 0; default: y0 in the first state part of size n,
+    zeros elsewhere."""
+    nominal: ArmParams | None = None
+    pairs_with: tuple[str, ...] = ()
+    """Names of the controllers it is meant for (documentation)."""
+    kind = "observer"
+
+    def __post_init__(self) -> None:
+        self._init_common(self.name, self.params, self.nominal)
+        o = self.owner
+        states = _parts(o, "state", self.states)
+        if not states:
+            raise ValueError(f"{o} declares no states")
+        object.__setattr__(self, "states", states)
+        clash = set(states) & set(self.param_layout)
+        if clash:
+            raise ValueError(f"{o}: the names {sorted(clash)} are both states and parameters")
+        if self.initial_state is not None and not callable(self.initial_state):
+            raise ValueError(f"{o}: initial_state must be callable (y0, n) -> state, got {self.initial_state!r}")
+        object.__setattr__(self, "_rhs_params", _fn_params(f"{o}.rhs", self.rhs))
+
+    def initial(self, y0: np.ndarray) -> np.ndarray:
+        n = y0.shape[0]
+        m = self.state_size(n)
+        if self.initial_state is not None:
+            x = np.asarray(self.initial_state(y0.copy(), n), dtype=np.float64).ravel()
+            if x.shape != (m,) or not np.all(np.isfinite(x)):
+                raise ValueError(f"{self.owner}: initial_state must return {m} finite numbers, got {x!r}")
+            return x
+        x = np.zeros(m)
+        for off, size in self.state_offsets(n).values():
+            if size == n:
+                x[off : off + n] = y0
+                break
+        return x
+
+
+def _zero_output(u_law):
+    for i in range(u_law.shape[0]):
+        u_law[i] = 0.0
+
+
+NO_CONTROLLER = Controller("none", _zero_output)
+"""The inner controller of plain mode: zero torque, so the agent's action is the whole input."""
+
+# ---------------------------------------------------------------------------------------------
+# connecting blocks: signal resolution, generated glue, trial call
+
+_GLUE_ARGS = "t, y, qd, xo, xc, ref, bnd, nom, og, cg, u, cout, dxo, dxc, work"
+"""The fixed signature of the generated glue functions the kernel calls."""
+
+
+@dataclass(frozen=True, eq=False)
+class Connection:
+    """A controller and an observer connected for n joints: sizes, offsets and the compiled glue."""
+
+    controller: Controller
+    observer: Observer
+    n: int
+    n_obs: int
+    n_ctrl: int
+    n_out: int
+    obs_offsets: dict
+    out_offsets: dict
+    module: Any
+    digest: str
+
+    @property
+    def ctrl_output(self):
+        return self.module.ctrl_output
+
+    @property
+    def obs_rhs(self):
+        return self.module.obs_rhs
+
+    @property
+    def ctrl_update(self):
+        return self.module.ctrl_update
+
+    def observer_signal(self, name: str) -> tuple[int, int] | None:
+        """(offset in the observer state, size) of an observer state part, or None."""
+        return self.obs_offsets.get(name)
+
+
+def _expr(role: str, name: str, ctrl: Controller, obs: Observer, n: int, fn_owner: str, after_output: bool) -> str:
+    """The glue's expression for a parameter ``name`` of a function of block ``role``."""
+    if name == "t":
+        return "t"
+    if name == "y":
+        return "y"
+    if name == "qd_true":
+        return "qd"
+    if name in _REF_INDEX:
+        return f"_fixed(ref, {_REF_INDEX[name] * n}, {n})"
+    if name in _BOUND_INDEX:
+        return f"bnd[{_BOUND_INDEX[name]}]"
+    if name == "nominal":
+        return "nom"
+    if name == "work":
+        return "work"
+    own, other = (ctrl, obs) if role == "ctrl" else (obs, ctrl)
+    x, dx, g = ("xc", "dxc", "cg") if role == "ctrl" else ("xo", "dxo", "og")
+    writes_state = fn_owner.endswith((".update", ".rhs"))
+    if name in own.param_layout:
+        off, length = own.param_layout[name]
+        return f"{g}[{off}]" if length is None else f"_fixed({g}, {off}, {length})"
+    own_states = own.state_offsets(n)
+    if name == "state":
+        return x
+    if name in own_states:
+        off, m = own_states[name]
+        return f"_fixed({x}, {off}, {m})"
+    if name == "dstate" or (name.startswith("d_") and name[2:] in own_states):
+        if not writes_state:
+            raise ValueError(f"{fn_owner} cannot write {name!r}: state derivatives are written by the update/rhs "
+                             "function")
+        if name == "dstate":
+            return dx
+        off, m = own_states[name[2:]]
+        return f"_fixed({dx}, {off}, {m})"
+    outs = ctrl.output_offsets(n)
+    if name in outs:
+        if fn_owner == f"{ctrl.owner}.output" or after_output:
+            off, m = outs[name]
+            return f"_fixed(cout, {off}, {m})"
+        raise ValueError(f"{fn_owner} reads {name!r}, which the controller computes after it")
+    if name == "u":
+        if after_output:
+            return "u"
+        raise ValueError(f"{fn_owner} reads 'u', the commanded torque, which is computed from its own output u_law; "
+                         "read it in update (or the observer)")
+    if role == "ctrl":
+        obs_states = obs.state_offsets(n)
+        if name in obs_states:
+            off, m = obs_states[name]
+            return f"_fixed(xo, {off}, {m})"
+        raise ValueError(f"{fn_owner} reads the signal {name!r}, which no block provides with observer "
+                         f"{obs.name!r} (its states: {list(obs_states)}); signals on offer: "
+                         f"{sorted(set(BASE_SIGNALS) | set(obs_states) | set(own_states) | set(own.param_layout) | set(outs))}")
+    raise ValueError(f"{fn_owner} reads the signal {name!r}, which no block provides; signals on offer: "
+                     f"{sorted(set(BASE_SIGNALS) | set(own_states) | set(own.param_layout) | set(outs) | {'u'})}")
+
+
+def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Observer, n: int, owner: str,
+          after_output: bool) -> str:
+    args = ", ".join(_expr(role, p, ctrl, obs, n, owner, after_output) for p in params)
+    return f"    return {fn_name}({args})\n"
+
+
+def _cache_root() -> Path:
+    """Folder for generated glue modules (their numba cache sits beside them)."""
+    env = os.environ.get("BLF_GYM_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "blf-gym"
+
+
+def _source_of(fn: Any) -> bytes:
+    py = getattr(fn, "py_func", fn)
+    mod = sys.modules.get(py.__module__)
+    f = getattr(mod, "__file__", None)
+    if f and os.path.isfile(f):
+        return Path(f).read_bytes()
+    try:
+        return inspect.getsource(py).encode()
+    except (OSError, TypeError):
+        return py.__code__.co_code
+
+
+def _compiled(fn: Any):
+    """The plug-in function as a numba function inlined into the kernel."""
+    return njit(inline="always", error_model="numpy", cache=False)(getattr(fn, "py_func", fn))
+
+
+_CONNECTIONS: dict[tuple, Connection] = {}
+
+
+def connect(controller: Controller, observer: Observer, n: int) -> Connection:
+    """Check that every signal each function reads is provided, generate and compile the glue, and
+    run each function once on trial inputs; ValueError naming the plug-in and the problem."""
+    c, o = controller, observer
+    if not isinstance(c, Controller):
+        raise ValueError(f"connect: controller must be a blf_gym.blocks.Controller, got {c!r}")
+    if not isinstance(o, Observer):
+        raise ValueError(f"connect: observer must be a blf_gym.blocks.Observer, got {o!r}")
+    if c.nominal.n_links != n or o.nominal.n_links != n:
+        raise ValueError(f"{c.owner} and {o.owner} must model an arm of {n} links like the plant")
+    if not np.array_equal(c.nominal.pack(), o.nominal.pack()):
+        raise ValueError(f"{c.owner} and {o.owner} must share one nominal model")
+    # the compiled code depends on the functions and the layouts, not on the parameter values
+    key = (c.name, c.output, c.update, tuple(c.outputs.items()), tuple(c.states.items()),
+           tuple(c.param_layout.items()), o.name, o.rhs, tuple(o.states.items()), tuple(o.param_layout.items()), n)
+    if key in _CONNECTIONS:
+        return _CONNECTIONS[key]
+    src = "# generated by blf_gym.blocks.connect: the glue between the kernel and the plug-ins\n"
+    src += f"def ctrl_output({_GLUE_ARGS}):\n" + _call("ctrl", "_c_output", c._out_params, c, o, n, f"{c.owner}.output", False)
+    src += f"\ndef obs_rhs({_GLUE_ARGS}):\n" + _call("obs", "_o_rhs", o._rhs_params, c, o, n, f"{o.owner}.rhs", True)
+    src += f"\ndef ctrl_update({_GLUE_ARGS}):\n"
+    src += (_call("ctrl", "_c_update", c._upd_params, c, o, n, f"{c.owner}.update", True) if c.update else "    pass\n")
+    h = hashlib.sha1(src.encode())
+    for fn in (c.output, c.update, o.rhs):
+        if fn is not None:
+            py = getattr(fn, "py_func", fn)
+            h.update(f"{py.__module__}.{py.__qualname__}".encode())
+            h.update(_source_of(fn))
+    h.update(Path(__file__).read_bytes())
+    digest = h.hexdigest()[:12]
+    module = _load_glue(src, f"{c.name}__{o.name}__n{n}__{digest}", {
+        "_c_output": _compiled(c.output), "_o_rhs": _compiled(o.rhs),
+        "_c_update": _compiled(c.update) if c.update else None,
+    })
+    conn = Connection(c, o, n, o.state_size(n), c.state_size(n), c.output_size(n), o.state_offsets(n),
+                      c.output_offsets(n), module, digest)
+    _trial(conn)
+    _CONNECTIONS[key] = conn
+    return conn
+
+
+def _load_glue(src: str, name: str, bindings: dict) -> Any:
+    """Write the glue source once (content-addressed, so numba's disk cache stays valid) and import it
+    with the plug-ins bound as globals."""
+    from .simulate import _fixed
+
+    root = _cache_root()
+    path = root / f"glue_{name}.py"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        if not path.is_file() or path.read_text() != src:
+            tmp = path.with_suffix(f".tmp{os.getpid()}")
+            tmp.write_text(src)
+            os.replace(tmp, path)
+    except OSError:
+        path = None  # read-only: compile from memory, without a disk cache for the glue
+    modname = f"blf_gym_glue_{name}"
+    mod = type(sys)(modname)
+    mod.__dict__.update(bindings, _fixed=_fixed)
+    mod.__file__ = str(path) if path else f"<{modname}>"
+    code = compile(src, mod.__file__, "exec")
+    exec(code, mod.__dict__)
+    for fname in ("ctrl_output", "obs_rhs", "ctrl_update"):
+        setattr(mod, fname, njit(inline="always", error_model="numpy", cache=path is not None)(getattr(mod, fname)))
+    sys.modules[modname] = mod
+    return mod
+
+
+def _py_fixed(w, start, length):
+    return w[start : start + length]
+
+
+def _trial(conn: Connection) -> None:
+    """Run the three functions once in Python on plausible inputs (the paper's start), so that a wrong
+    output shape, an unwritten output or an exception is reported against the plug-in."""
+    from .bounds import bounds_into
+    from .params import preset
+    from .reference import joint_reference
+
+    c, o, n = conn.controller, conn.observer, conn.n
+    sc = preset("paper-0.1hz")
+    if sc.arm.n_links != n:
+        return  # no reference arm of this size to try it on
+    q_d, qd_d, qdd_d = joint_reference(0.0, sc)
+    y = q_d + 0.01
+    ref = np.concatenate([q_d, qd_d, qdd_d]).astype(np.float64)
+    bnd = np.zeros(6)
+    bounds_into(0.0, sc.bounds.pack(), bnd)
+    nom = np.zeros(nominal_length(n))
+    nominal_model_into(y, c.nominal.pack(), nom, np.zeros(work_length(n)))
+    arm = c.nominal.pack()
+    m0 = model_length(n)
+    nom[m0 : m0 + arm.size] = arm
+    xo = o.initial(y)
+    xc = c.initial(y)
+    qd = qd_d.copy()
+    u = np.zeros(n)
+    cout = np.full(conn.n_out, np.nan)
+    dxo = np.full(conn.n_obs, np.nan)
+    dxc = np.full(conn.n_ctrl, np.nan)
+    work = np.zeros(work_length(n))
+    args = (0.0, y, qd, xo, xc, ref, bnd, nom, o.gains, c.gains, u, cout, dxo, dxc, work)
+    for fname, owner, out, label in (("ctrl_output", f"{c.owner}.output", cout, "its outputs"),
+                                     ("obs_rhs", f"{o.owner}.rhs", dxo, "dstate"),
+                                     ("ctrl_update", f"{c.owner}.update", dxc, "dstate")):
+        glue = getattr(conn.module, fname).py_func
+        g = glue.__globals__
+        saved = {k: g[k] for k in ("_c_output", "_o_rhs", "_c_update", "_fixed") if g.get(k) is not None}
+        try:
+            for k, v in saved.items():
+                g[k] = v.py_func if k != "_fixed" else _py_fixed
+            ret = glue(*args)
+        except Exception as exc:  # noqa: BLE001 (reported against the plug-in)
+            raise ValueError(f"{owner} failed on a trial call at the paper's start: {type(exc).__name__}: {exc}") from exc
+        finally:
+            g.update(saved)
+        if ret is not None:
+            raise ValueError(f"{owner} returned {ret!r}; a plug-in writes its results into the arrays it is "
+                             "handed and returns nothing")
+        if fname == "ctrl_output":
+            np.clip(cout[:n], -1e300, 1e300, out=u)
+        bad = np.flatnonzero(~np.isfinite(out))
+        if bad.size:
+            raise ValueError(f"{owner} left entries {bad.tolist()} of {label} unwritten or non-finite on a trial "
+                             f"call at the paper's start (size {out.size})")
+

@@ -1,0 +1,181 @@
+"""The reward and the per-sample sums it is built from, in one file (docs/extending.md, "A reward term").
+
+The compiled kernel calls :func:`accumulate_sample` at every 1 ms sample and adds its terms to the
+columns of :data:`SUM_COLUMNS`; the env turns one agent step's sums into the reward with
+:func:`step_outputs` and the weights of :class:`RewardWeights`. A new reward term built from
+per-sample signals is a change in this file only: a column, its line in ``accumulate_sample``, a
+weight (default 0, so existing agents score the same) and its line in ``step_outputs``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numba import njit
+
+from .params import check_bool, check_real
+from .status import ST_DIVERGED, ST_VIOL_STEPS
+
+__all__ = ["SUM_COLUMNS", "RewardWeights", "accumulate_sample", "step_outputs"]
+
+SUM_COLUMNS = ("error_estimate_max", "sum_e1_over_bound_sq", "sum_u_over_max_sq", "samples")
+"""Per-arm float sums of one kernel call, declared once: the largest ODE3 error estimate, the sums
+over 1 ms samples and joints of (e1/bound)^2 and (u/max_torque)^2, the number of samples; then,
+per joint, the sum over samples of e1^2 (rad^2)."""
+SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES = (SUM_COLUMNS.index(c) for c in SUM_COLUMNS)
+SUM_E2_JOINT = len(SUM_COLUMNS)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):
+    """Add one 1 ms sample's terms to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per joint);
+    returns whether the sample violates a bound. The signals at the sample: ``x`` the state [q, qd,
+    observer states, controller states] (true angles first), ``y`` the measured angles, ``ref``
+    [q_d, qd_d, qdd_d], ``bnd`` [k_a, k_a', k_a'', k_b, k_b', k_b''], ``u`` the commanded torque,
+    ``cout`` the controller's outputs (u_law first), ``umax`` the torque limit."""
+    en2 = 0.0
+    un2 = 0.0
+    bad = False
+    for i in range(n):
+        e = x[i] - ref[i]
+        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
+        en2 += en * en
+        sums[SUM_E2_JOINT + i] += e * e
+        un = u[i] / umax
+        un2 += un * un
+        if e >= bnd[0] or e <= -bnd[3]:
+            bad = True
+    sums[SUM_EN2] += en2
+    sums[SUM_UN2] += un2
+    sums[SUM_SAMPLES] += 1.0
+    return bad
+
+
+@dataclass(frozen=True)
+class RewardWeights:
+    """Per-agent-step reward r = alive - tracking * E - torque * U - violation * [ended by it].
+
+    E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
+    normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
+    (u / max_torque)^2 (<= 1). With ``relative`` (below) E is a ratio to the law's error instead,
+    capped at ``relative_cap`` in size, so "max E" below is 1 or ``relative_cap``. Every step
+    inside the bounds therefore loses at most ``tracking * max E + torque - alive`` against the
+    alive term. Ending an episode early by a violation
+    never pays when either
+
+    * ``alive >= tracking * max E + torque`` (the default: every step inside the bounds earns
+      r >= 0), or
+    * ``violation >= (tracking * max E + torque - alive) * max_episode_steps``: the terminal penalty
+      outweighs anything the rest of the episode could have cost (any discount factor).
+
+    The env checks this at construction. The second form keeps rewards near zero, which suits
+    critics when the tracking weight is large (the residual configs use it).
+    """
+
+    tracking: float = 1.0
+    """Weight of the normalized squared tracking error (>= 0)."""
+    torque: float = 0.01
+    """Weight of the normalized squared torque (>= 0)."""
+    alive: float | None = None
+    """Reward per step for staying inside the bounds (>= 0); default tracking * max E + torque."""
+    violation: float = 100.0
+    """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
+    relative: bool = False
+    """Measure tracking against the law, in the evaluation metric's own terms: E becomes the mean
+    over joints of E_j / E_law_j, with E_j the step's mean of e1_j^2 (the squared error itself,
+    not normalized by the bounds, like the RMSE) and E_law_j its mean over a whole episode of the
+    reference law alone on the episode's scenario (the inner controller in residual mode, the
+    proposed law in plain mode; no measurement noise). A policy at the law's level then loses
+    about ``tracking`` per step on every scenario and joint, whatever their error scale, and the
+    episode's sum of E is its MSE relative to the law's. Each ratio is capped at
+    ``relative_cap``."""
+    relative_cap: float = 100.0
+    """Cap of each joint's ratio when ``relative`` (> 0); |E| <= relative_cap inside the bounds."""
+    law_baseline: bool = False
+    """With ``relative``: subtract the reference law's own squared error at the same agent step,
+    so E_j = (e1_j^2 - e1_law_j^2) / E_law_j (each step's mean over its 1 ms samples). A policy at
+    the law's level then gets about 0 per step, and the large, policy-independent swings of the
+    error (the start-up transient, the elbow folds) cancel; the episode's sum of E is still its
+    MSE relative to the law's, shifted by a constant. Variance reduction for learning."""
+
+    def __post_init__(self) -> None:
+        o = "RewardWeights"
+        for name in ("relative", "law_baseline"):
+            object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
+        object.__setattr__(self, "relative_cap",
+                           check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
+        for name in ("tracking", "torque", "violation"):
+            object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
+        if self.alive is None:
+            object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
+        object.__setattr__(self, "alive", check_real(o, "alive", self.alive, lo=0.0, none_ok=False,
+                                                     hint=" (or None: tracking * max E + torque)"))
+        if self.law_baseline and not self.relative:
+            raise ValueError("RewardWeights.law_baseline needs relative=True")
+
+    @property
+    def max_error(self) -> float:
+        """The largest E inside the bounds: 1, or ``relative_cap`` when ``relative``."""
+        return float(self.relative_cap) if self.relative else 1.0
+
+    def pack(self, terminate_on_violation: bool) -> np.ndarray:
+        """The weights as :func:`step_outputs` reads them (``wvec``)."""
+        return np.array([float(self.relative), self.relative_cap, self.alive, self.tracking, self.torque,
+                         self.violation, float(terminate_on_violation)])
+
+    def check_episode(self, max_episode_steps: int) -> None:
+        """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
+        deficit = self.tracking * self.max_error + self.torque - self.alive
+        if deficit > 0 and self.violation < deficit * max_episode_steps:
+            raise ValueError(
+                f"RewardWeights: with alive = {self.alive!r} < tracking * max E + torque = "
+                f"{self.tracking * self.max_error + self.torque}, violation must be >= (tracking * max E "
+                f"+ torque - alive) * max_episode_steps = {deficit * max_episode_steps:g} so that a "
+                f"violation never pays; got violation = {self.violation!r}")
+
+
+# rows of _step_outputs' result
+_R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_PENALTY, _R_ALIVE = range(8)
+
+
+@njit(cache=True, error_model="numpy")
+def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
+    """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
+    the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
+    violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
+    diverged."""
+    N = status.shape[0]
+    n = law_e2.shape[1]
+    relative = wvec[0] > 0.0
+    cap, alive, w_tracking, w_torque, w_violation = wvec[1], wvec[2], wvec[3], wvec[4], wvec[5]
+    terminate_on_violation = wvec[6] > 0.0
+    flags = 0
+    for b in range(N):
+        samples = max(sums[b, SUM_SAMPLES], 1.0)
+        if relative:
+            acc = 0.0
+            for j in range(n):
+                # base is zero unless law_baseline: then the law's own value at this agent step
+                r = (sums[b, SUM_E2_JOINT + j] / samples - base[b, j]) / law_e2[b, j]
+                acc += min(max(r, -cap), cap)
+            tr = acc / n
+        else:
+            tr = sums[b, SUM_EN2] / (samples * n)
+        tq = sums[b, SUM_UN2] / (samples * n)
+        v = status[b, ST_VIOL_STEPS] > 0
+        term = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
+        pen = w_violation if term else 0.0
+        out[_R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
+        out[_R_TERMINATED, b] = 1.0 if term else 0.0
+        out[_R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
+        out[_R_VIOLATED, b] = 1.0 if v else 0.0
+        out[_R_TRACKING, b] = -w_tracking * tr
+        out[_R_TORQUE, b] = -w_torque * tq
+        out[_R_PENALTY, b] = -pen
+        out[_R_ALIVE, b] = alive
+        if term or out[_R_TRUNCATED, b] > 0.0:
+            flags |= 1
+        if status[b, ST_DIVERGED] != 0:
+            flags |= 2
+    return flags

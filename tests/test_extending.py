@@ -1,0 +1,152 @@
+"""docs/extending.md, followed recipe by recipe from the page's own code blocks.
+
+Each recipe is one file: a controller module, an observer module, a row of the observation table
+and a patch of blf_gym/reward.py. The expected values are independent of the code under test: the
+integral state against a sum of the recorded error, the observer against the true velocity, the
+observation entry against the law's published output, the reward term against the recorded speeds.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import blf_gym  # noqa: F401 (registers the ids)
+import blf_gym.core as core
+from blf_gym.params import preset
+from blf_gym.simulate import ClosedLoop, simulate
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = (ROOT / "docs" / "extending.md").read_text()
+
+
+def recipe(name: str) -> str:
+    m = re.search(rf"<!-- recipe:{name} -->\s*```(\w+)\n(.*?)```", DOC, re.S)
+    assert m, f"docs/extending.md has no recipe {name!r}"
+    return m.group(2)
+
+
+@pytest.fixture(scope="module")
+def modules(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recipes")
+    (d / "my_pid.py").write_text(recipe("controller"))
+    (d / "my_hgo.py").write_text(recipe("observer"))
+    sys.path.insert(0, str(d))
+    try:
+        yield importlib.import_module("my_pid"), importlib.import_module("my_hgo")
+    finally:
+        sys.path.remove(str(d))
+
+
+def test_the_controller_recipe_integrates_its_own_state(modules):
+    my_pid, _ = modules
+    sc = preset("paper-0.1hz", duration=2.0)
+    tr = simulate(sc, my_pid.my_pid())
+    assert not tr.diverged, tr.message
+    loop = ClosedLoop([sc], my_pid.my_pid())
+    loop.advance(sc.sim.n_steps, record_samples=0)
+    n = 3
+    s = loop.X[0, 2 * n + loop.connection.n_obs :]
+    # s = integral of (y - q_d) dt (no noise: y = q); the 1 ms samples' rectangle sum is within
+    # a fraction of a per cent of ODE3's integral over 2 s
+    want = tr.e1.sum(axis=0) * sc.sim.sample_period
+    np.testing.assert_allclose(s, want, rtol=5e-3, atol=1e-7)
+    assert np.all(np.abs(s) > 0)
+    # the published output is the measured error at the start of the last integration step
+    err = loop.outputs()["error"][0]
+    assert np.all(np.abs(err) < 0.05) and np.any(err != 0.0)
+
+
+def test_the_observer_recipe_estimates_the_velocity_and_is_refused_where_it_cannot_serve(modules):
+    my_pid, my_hgo = modules
+    sc = preset("paper-0.1hz", duration=2.0)
+    tr = simulate(sc, my_pid.my_pid(), my_hgo.my_hgo())
+    assert not tr.diverged, tr.message
+    late = tr.t > 0.5
+    assert np.abs(tr.x1_hat - tr.q)[late].max() < 0.05  # it tracks the angles
+    # Without a disturbance state it lags the true velocity by the quasi-static error of its
+    # equations, qd - x2_hat = 2 x3 / k0 (x3 the recorded true lumped disturbance): a wrong gain
+    # (3 k0, say) would move it by half
+    bias = 2.0 * tr.x3[late] / 150.0
+    assert np.all(np.abs((tr.qd - tr.x2_hat)[late] - bias).max(axis=0) < 0.2 * np.abs(bias).max(axis=0))
+    assert np.all(np.isnan(tr.x3_hat))  # it has no x3_hat, and the record says so
+    with pytest.raises(ValueError, match=r"controller 'proposed'\.output reads the signal 'x3_hat', which no block "
+                                         r"provides with observer 'my_hgo'"):
+        simulate(sc, "proposed", my_hgo.my_hgo())
+    with pytest.raises(ValueError, match="'x3_hat'.*my_hgo"):
+        gym.make("PlanarBLFResidual-v0", controller=my_pid.my_pid(), observer=my_hgo.my_hgo())
+
+
+def test_the_observation_recipe_adds_an_opt_in_entry(monkeypatch):
+    row = eval(recipe("observation").strip().rstrip(","), {"Entry": core.Entry})  # noqa: S307 (our own doc)
+    assert row.kind == "optional"
+    monkeypatch.setattr(core, "OBSERVATION", core.OBSERVATION + (row,))
+    default = gym.make("PlanarBLFResidual-v0")
+    assert default.observation_space.shape == (31,)  # opt-in: the shipped agents' layout is unchanged
+    env = gym.make("PlanarBLFResidual-v0", observation_extras=("z1",))
+    assert env.observation_space.shape == (34,)
+    names = [r[0] for r in core.observation_layout(3, extras=("z1",))]
+    assert names[-3:] == ["z1_1 = y_1 - q_d_1 (the law's)", "z1_2 = y_2 - q_d_2 (the law's)",
+                          "z1_3 = y_3 - q_d_3 (the law's)"]
+    obs0, _ = default.reset(seed=3)
+    obs, _ = env.reset(seed=3)
+    np.testing.assert_array_equal(obs[:31], obs0)
+    for _ in range(3):
+        obs, _, _, _, info = env.step(np.zeros(3, dtype=np.float32))
+    np.testing.assert_array_equal(obs[-3:], info["controller_outputs"]["z1"].astype(np.float32))
+    assert np.any(obs[-3:] != 0.0)
+    with pytest.raises(ValueError, match="observation_extras"):
+        gym.make("PlanarBLFResidual-v0", observation_extras=("nonexistent",))
+    with pytest.raises(ValueError, match="z2_hat.*'none'"):
+        gym.make("PlanarBLF-v0", observation_extras=("z2_hat",))  # plain mode publishes no z2_hat
+
+
+def _apply(patch: str, path: Path) -> None:
+    """Apply the recipe's hunks: each replaces its context and '-' lines by its context and '+' lines."""
+    text = path.read_text()
+    for hunk in patch.split("\n@@")[1:]:
+        lines = hunk.split("\n")[1:]
+        old = [ln[1:] for ln in lines if ln[:1] in (" ", "-")]
+        new = [ln[1:] for ln in lines if ln[:1] in (" ", "+")]
+        before = "\n".join(old).rstrip("\n")
+        assert text.count(before) == 1, f"hunk context not found once in {path.name}:\n{before}"
+        text = text.replace(before, "\n".join(new).rstrip("\n"))
+    path.write_text(text)
+
+
+_REWARD_PROBE = r"""
+import json, numpy as np, gymnasium as gym, blf_gym
+assert blf_gym.__file__.startswith(%(root)r), blf_gym.__file__
+out = {}
+for w in (0.0, 1e-4):
+    env = gym.make("PlanarBLFResidual-v0", reward_weights={"speed": w}, record=True, duration=0.5)
+    env.reset(seed=0)
+    out[str(w)] = [float(env.step(np.zeros(3, dtype=np.float32))[1]) for _ in range(5)]
+    out["qd"] = env.unwrapped.core.trajectory(0).qd.tolist()
+print(json.dumps(out))
+"""
+
+
+def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
+    shutil.copytree(ROOT / "blf_gym", tmp_path / "blf_gym", ignore=shutil.ignore_patterns("__pycache__"))
+    _apply(recipe("reward"), tmp_path / "blf_gym" / "reward.py")
+    env = {**os.environ, "PYTHONPATH": str(tmp_path)}
+    p = subprocess.run([sys.executable, "-c", _REWARD_PROBE % {"root": str(tmp_path)}], capture_output=True,
+                       text=True, timeout=600, env=env, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    qd = np.array(res["qd"])  # (50 samples, 3): 10 samples per 10 ms agent step
+    want = [1e-4 * np.mean(qd[10 * k : 10 * k + 10] ** 2) for k in range(5)]
+    got = np.array(res["0.0001"]) - np.array(res["0.0"])
+    np.testing.assert_allclose(-got, want, rtol=1e-9, atol=1e-15)
+    assert np.all(-got > 0)
