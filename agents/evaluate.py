@@ -404,7 +404,10 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                        else law_for(label, scs, meta))
                 prov = _group_provenance(label, scs, kwargs)
                 if meta is not None:
-                    prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"))
+                    prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
+                                observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
+                else:
+                    prov.update(observer=args.observer)
                 rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
                 results.append((rec, trajs))
                 if bar is not None:

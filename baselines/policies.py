@@ -27,7 +27,9 @@ from typing import Any
 import numpy as np
 
 from blf_gym.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
-from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index
+from blf_gym.bounds import BOUND_LEN, KA, KA_DDOT, KA_DOT, KB, KB_DDOT, KB_DOT
+from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout
+from blf_gym.reference import REFERENCE_SIGNALS
 from blf_gym.params import BoundParams
 
 from .controllers import ControllerGains, ObserverGains
@@ -37,6 +39,7 @@ __all__ = ["BaselinePolicy"]
 
 _N = 3
 _IDX = observation_index(_N)
+_OBS_DIM = len(observation_layout(_N))
 _Y, _QD_REF, _QD_D, _QDD_D = _IDX["y"], _IDX["q_d"], _IDX["qd_d"], _IDX["qdd_d"]
 _KA, _KB = _IDX["k_a"].start, _IDX["k_b"].start
 _KAD, _KBD = _IDX["k_a_rate"].start, _IDX["k_b_rate"].start
@@ -78,7 +81,8 @@ class BaselinePolicy:
         self.obs_gains = observer or ObserverGains()
         # the registered plug-in, built with these gains (a plug-in of another package takes its
         # own defaults), connected to the LESO this policy integrates itself
-        kw = {f.name: getattr(self.gains, f.name) for f in _fields(self.gains)} if controller in ("bc", "lesobc", "proposed") else {}
+        # the given gains go to the plug-in's factory; without them it takes its own defaults
+        kw = {} if gains is None else {f.name: getattr(gains, f.name) for f in _fields(gains)}
         self.inner = make_controller(controller, **kw)
         if self.inner.states:
             raise ValueError(f"BaselinePolicy samples stateless laws; {controller!r} has states "
@@ -128,13 +132,13 @@ class BaselinePolicy:
     def _laws(self, obs: np.ndarray, starts: np.ndarray) -> np.ndarray:
         N = obs.shape[0]
         if self._xhat is None or self._xhat.shape[0] != N:
-            self._xhat = np.zeros((N, 3 * _N))
+            self._xhat = np.zeros((N, self._conn.n_obs))
             self._y_prev = obs[:, _Y].copy()
             self._u_prev = np.zeros((N, _N))
             starts = np.ones(N, dtype=bool)
         u = np.zeros((N, _N))
-        ref = np.empty(3 * _N)
-        bnd = np.empty(6)
+        ref = np.empty(len(REFERENCE_SIGNALS) * _N)
+        bnd = np.empty(BOUND_LEN)
         for i in range(N):
             y = obs[i, _Y].astype(np.float64)
             if starts[i]:
@@ -151,7 +155,7 @@ class BaselinePolicy:
             ka, kb = float(obs[i, _KA]), float(obs[i, _KB])
             kad, kbd = float(obs[i, _KAD]), float(obs[i, _KBD])
             r = self.bounds.decay_rate  # exponential bounds: k'' = -r k'
-            bnd[:] = (ka, kad, -r * kad, kb, kbd, -r * kbd)
+            bnd[[KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT]] = (ka, kad, -r * kad, kb, kbd, -r * kbd)
             if self.inner.full_state:
                 if obs.shape[1] < _QD_TRUE.stop:
                     raise ValueError(f"{self.name} reads the true velocity (a full-state law): make the env with "
@@ -186,8 +190,8 @@ class BaselinePolicy:
         obs = np.asarray(observation)
         single = obs.ndim == 1
         batch = obs[None] if single else obs
-        if batch.ndim != 2 or batch.shape[1] < 31:
-            raise ValueError(f"expected PlanarBLF observations of shape (31,) or (N, 31+), got {obs.shape}")
+        if batch.ndim != 2 or batch.shape[1] < _OBS_DIM:
+            raise ValueError(f"expected PlanarBLF observations of shape ({_OBS_DIM},) or (N, {_OBS_DIM}+), got {obs.shape}")
         starts = (np.zeros(batch.shape[0], dtype=bool) if episode_start is None
                   else np.asarray(episode_start, dtype=bool).reshape(-1))
         # an observation at t = 0 starts an episode even if the caller does not say so

@@ -130,7 +130,8 @@ def run_cases(
             elif law is None:
                 law = simulate_batch(scenarios, "proposed")
             for sc, tr, lt in zip(scenarios, trajs, law):
-                rec = summarize([tr], ctrl, "baseline", sc.name, sc.sim.dt, wall_s=wall / len(trajs), law=[lt])
+                rec = summarize([tr], ctrl, "baseline", sc.name, sc.sim.dt, wall_s=wall / len(trajs), law=[lt],
+                                provenance={"observer": observer})
                 done.append((rec, tr))
             if bar is not None:
                 bar.update(len(scenarios))

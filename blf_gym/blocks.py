@@ -70,7 +70,9 @@ from numba import njit
 
 from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
                        mass_matrix_into)
+from .bounds import BOUND_SIGNALS
 from .params import ArmParams
+from .reference import REFERENCE_SIGNALS
 
 __all__ = [
     "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "Connection", "connect", "mass_times",
@@ -173,8 +175,8 @@ BASE_SIGNALS: dict[str, tuple[str, str, str]] = {
     "work": ("work", "-", "scratch"),
 }
 """Signals every plug-in function may read, whatever the other blocks are."""
-_BOUND_INDEX = {"k_a": 0, "k_a_dot": 1, "k_a_ddot": 2, "k_b": 3, "k_b_dot": 4, "k_b_ddot": 5}
-_REF_INDEX = {"q_d": 0, "qd_d": 1, "qdd_d": 2}
+_BOUND_INDEX = {name: i for i, name in enumerate(BOUND_SIGNALS)}
+_REF_INDEX = {name: i for i, name in enumerate(REFERENCE_SIGNALS)}
 _RESERVED = {*BASE_SIGNALS, "u", "state", "dstate"}
 _SIZE = re.compile(r"^\s*(\d*)\s*\*?\s*n\s*$")
 
@@ -657,7 +659,7 @@ def _trial(conn: Connection) -> None:
     q_d, qd_d, qdd_d = joint_reference(0.0, sc)
     y = q_d + 0.01
     ref = np.concatenate([q_d, qd_d, qdd_d]).astype(np.float64)
-    bnd = np.zeros(6)
+    bnd = np.zeros(len(BOUND_SIGNALS))
     bounds_into(0.0, sc.bounds.pack(), bnd)
     nom = np.zeros(nominal_length(n))
     nominal_model_into(y, c.nominal.pack(), nom, np.zeros(work_length(n)))

@@ -10,31 +10,36 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .params import BoundParams
+from .params import BOUNDS_PACK, BoundParams
 
-__all__ = ["bounds_into", "error_bounds", "BOUND_LEN"]
+__all__ = ["bounds_into", "error_bounds", "BOUND_SIGNALS", "BOUND_LEN"]
 
-BOUND_LEN = 6
-"""Length of the vector written by :func:`bounds_into`."""
+BOUND_SIGNALS = ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot", "k_b_ddot")
+"""The vector written by :func:`bounds_into`, declared once (these are also the plug-in signals'
+names, :mod:`blf_gym.blocks`)."""
+BOUND_LEN = len(BOUND_SIGNALS)
+KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT = range(BOUND_LEN)
+_BP = {name: i for i, name in enumerate(BOUNDS_PACK)}
+_AMP_A, _FLOOR_A, _AMP_B, _FLOOR_B, _RATE = (_BP[k] for k in ("upper_amplitude", "upper_floor", "lower_amplitude",
+                                                             "lower_floor", "decay_rate"))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def bounds_into(t, bp, out):
     """Write ``[k_a, k_a', k_a'', k_b, k_b', k_b'']`` at time ``t`` into ``out``.
 
-    ``bp`` is :meth:`BoundParams.pack`: [upper_amplitude, upper_floor, lower_amplitude,
-    lower_floor, decay_rate].
+    ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.params.BOUNDS_PACK`.
     """
-    r = bp[4]
+    r = bp[_RATE]
     decay = np.exp(-r * t)
-    a = bp[0] * decay
-    b = bp[2] * decay
-    out[0] = a + bp[1]
-    out[1] = -r * a
-    out[2] = r * r * a
-    out[3] = b + bp[3]
-    out[4] = -r * b
-    out[5] = r * r * b
+    a = bp[_AMP_A] * decay
+    b = bp[_AMP_B] * decay
+    out[KA] = a + bp[_FLOOR_A]
+    out[KA_DOT] = -r * a
+    out[KA_DDOT] = r * r * a
+    out[KB] = b + bp[_FLOOR_B]
+    out[KB_DOT] = -r * b
+    out[KB_DDOT] = r * r * b
 
 
 def error_bounds(t: np.ndarray | float, params: BoundParams = BoundParams()) -> tuple[np.ndarray, np.ndarray]:

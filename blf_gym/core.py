@@ -12,14 +12,14 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from numba import njit
 
-from .bounds import bounds_into
+from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
 from typing import NamedTuple
 
 from .blocks import NO_CONTROLLER, Controller, Observer
 from .controller import available_controllers, available_observers, make_controller, make_observer
 from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
                      _R_VIOLATED, RewardWeights, step_outputs)
-from .params import DT_MIN, PRESETS, Scenario, check_bool, check_int, check_real
+from .params import DT_MIN, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import (
@@ -120,6 +120,9 @@ def optional_observations() -> list[str]:
     return [e.group for e in OBSERVATION if e.kind == "optional"]
 
 
+_RP_FREQ = REFERENCE_PACK.index("frequency")
+
+
 def _offsets() -> dict[str, tuple[int, int]]:
     """Each group's start as (a, b): the offset is a * n + b for n joints."""
     out, a, b = {}, 0, 0
@@ -189,8 +192,8 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
     for b in range(N):
         reference_into(t[b], rp[b], plant[b], ref[b])
         bounds_into(t[b], bp[b], bnd[b])
-        ka = bnd[b, 0]
-        kb = bnd[b, 3]
+        ka = bnd[b, KA]
+        kb = bnd[b, KB]
         o = out[b]
         for j in range(n):
             # the measured angle, and the error the agent can know: from the measurement, not
@@ -205,9 +208,9 @@ def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privile
             o[_at(_OFF_E1, n) + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
         o[_at(_OFF_KA, n)] = ka
         o[_at(_OFF_KB, n)] = kb
-        o[_at(_OFF_KAD, n)] = bnd[b, 1]
-        o[_at(_OFF_KBD, n)] = bnd[b, 4]
-        ph = 2.0 * np.pi * rp[b, 0] * t[b]
+        o[_at(_OFF_KAD, n)] = bnd[b, KA_DOT]
+        o[_at(_OFF_KBD, n)] = bnd[b, KB_DOT]
+        ph = 2.0 * np.pi * rp[b, _RP_FREQ] * t[b]
         o[_at(_OFF_PHASE, n)] = np.sin(ph)
         o[_at(_OFF_PHASE, n) + 1] = np.cos(ph)
         o[_at(_OFF_TIME, n)] = min(max(t[b] / dur[b], 0.0), 1.0)
@@ -237,8 +240,8 @@ def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privilege
         for j in range(n):
             ej = X[b, j] - ref[b, j]
             state[b, j] = ej
-            state[b, n + j] = ej - bnd[b, 0]
-            state[b, 2 * n + j] = -bnd[b, 3] - ej
+            state[b, n + j] = ej - bnd[b, KA]
+            state[b, 2 * n + j] = -bnd[b, KB] - ej
 
 
 # per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
@@ -432,7 +435,7 @@ class EnvCore:
         self.last_x3 = np.zeros((N, n))
         self.done = np.zeros(N, dtype=bool)
         self._ref = np.zeros((N, 3 * n))
-        self._bnd = np.zeros((N, 6))
+        self._bnd = np.zeros((N, BOUND_LEN))
         self._obs_noise = np.zeros((N, n))
         self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
         self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
@@ -772,8 +775,8 @@ class EnvCore:
             bnd = self._bnd.copy()
             info["time"] = t
             info["e1"] = state[:, :n]
-            info["k_a"] = bnd[:, 0]
-            info["k_b"] = bnd[:, 3]
+            info["k_a"] = bnd[:, KA]
+            info["k_b"] = bnd[:, KB]
             # g(t, q) <= 0 convention: positive means the bound is broken
             info["g_upper"] = state[:, n : 2 * n]
             info["g_lower"] = state[:, 2 * n :]

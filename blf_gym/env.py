@@ -101,7 +101,10 @@ class PlanarBLFEnv(gym.Env):
     obs, info = env.reset(seed=0, options={{"payload": 0.15}})       # per-episode variations
     ```
     ``scenario`` ("paper-0.1hz", "paper-0.5hz", "randomized" or a ``Scenario``),
-    ``controller`` (None, "bc", "lesobc", "proposed" or an ``InnerController``),
+    ``controller`` (None, "bc", "lesobc", "proposed", a registered plug-in's name or a
+    :class:`blf_gym.blocks.Controller`), ``observer`` ("leso", a registered name or a
+    :class:`blf_gym.blocks.Observer` that provides x2_hat and x3_hat), ``observation_extras``
+    (names of optional observation entries to append, e.g. ("z2_hat",); default none),
     ``residual_scale`` (N m, 2.0), ``control_period`` (s, 0.01; a multiple of 1 ms),
     ``privileged`` (False), ``terminate_on_violation`` (True), ``angle_noise_std`` (rad),
     ``duration`` (s, a whole number of control periods), ``max_torque`` (N m, 150), ``dt`` (s,

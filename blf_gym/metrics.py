@@ -48,7 +48,8 @@ RECORD_FIELDS = (
     "per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed",
 )
 PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
-PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds")
+PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds",
+                     "observer")
 """Optional per-record fields saying what produced it (the CSV carries them as JSON text)."""
 PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
              "torque_rms", "torque_peak", "saturated_fraction")

@@ -201,11 +201,11 @@ class ArmParams:
     kept apart so that a randomized plant can differ from the controller's model.
     """
 
-    lengths: tuple[float, ...] = (0.35, 0.30, 0.15)
+    lengths: tuple[float, ...] = field(default=(0.35, 0.30, 0.15), metadata={"unit": "m"})
     """Link lengths l_i, m (each > 0)."""
-    masses: tuple[float, ...] = (0.23, 0.20, 0.10)
+    masses: tuple[float, ...] = field(default=(0.23, 0.20, 0.10), metadata={"unit": "kg"})
     """Point masses m_i at the distal end of each link, kg (each > 0)."""
-    gravity: float = 9.81
+    gravity: float = field(default=9.81, metadata={"unit": "m/s^2"})
     """Gravitational acceleration along -y, m/s^2 (>= 0)."""
 
     def __post_init__(self) -> None:
@@ -230,11 +230,11 @@ class ArmParams:
 class FrictionParams:
     """Joint friction tau_fric = b qd + c tanh(psi qd), the same on every joint (paper eq. 2)."""
 
-    viscous: float = 0.5
+    viscous: float = field(default=0.5, metadata={"unit": "N m s/rad"})
     """Viscous coefficient b, N m s/rad (>= 0)."""
-    coulomb: float = 0.2
+    coulomb: float = field(default=0.2, metadata={"unit": "N m"})
     """Coulomb level c, N m (>= 0)."""
-    tanh_slope: float = 10.0
+    tanh_slope: float = field(default=10.0, metadata={"unit": "s/rad"})
     """Smoothing slope psi of the Coulomb term, s/rad (> 0)."""
 
     def __post_init__(self) -> None:
@@ -252,13 +252,13 @@ class DeadZoneParams:
     slope_left (tau - break_left) for tau <= break_left.
     """
 
-    slope_right: float = 1.0
+    slope_right: float = field(default=1.0, metadata={"unit": "-"})
     """h_r, dimensionless (> 0)."""
-    slope_left: float = 1.2
+    slope_left: float = field(default=1.2, metadata={"unit": "-"})
     """h_l, dimensionless (> 0)."""
-    break_right: float = 0.2
+    break_right: float = field(default=0.2, metadata={"unit": "N m"})
     """tau_r, N m (>= 0)."""
-    break_left: float = -0.2
+    break_left: float = field(default=-0.2, metadata={"unit": "N m"})
     """tau_l, N m (<= 0)."""
 
     def __post_init__(self) -> None:
@@ -278,9 +278,9 @@ class ForceParams:
     pushed towards -x.
     """
 
-    wrench: tuple[float, float, float] = (40.0, 0.0, 0.0)
+    wrench: tuple[float, float, float] = field(default=(40.0, 0.0, 0.0), metadata={"unit": "N, N, N m"})
     """f_ext = (f_x N, f_y N, moment N m) in the base frame."""
-    onset: float = 20.0
+    onset: float = field(default=20.0, metadata={"unit": "s"})
     """Switch-on time, s (>= 0). The paper's Section 4.1 says 20 s and its results text 15 s;
     20 s is the default here."""
 
@@ -350,12 +350,9 @@ class BoundParams:
             _set(self, name, check_real(o, name, getattr(self, name), lo=0.0, lo_open=lo_open, unit=unit))
 
     def pack(self) -> np.ndarray:
-        """Layout ``[upper_amplitude, upper_floor, lower_amplitude, lower_floor, decay_rate]``."""
-        return np.array(
-            [self.upper_amplitude, self.upper_floor, self.lower_amplitude, self.lower_floor,
-             self.decay_rate],
-            dtype=np.float64,
-        )
+        """Layout :data:`BOUNDS_PACK`: ``[upper_amplitude, upper_floor, lower_amplitude, lower_floor,
+        decay_rate]``."""
+        return np.array([getattr(self, name) for name in BOUNDS_PACK], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -422,6 +419,16 @@ class SimParams:
     def n_steps(self) -> int:
         return self.n_samples * self.steps_per_sample
 
+
+BOUNDS_PACK = ("upper_amplitude", "upper_floor", "lower_amplitude", "lower_floor", "decay_rate")
+"""The packed bounds (:meth:`BoundParams.pack`), declared once; ``blf_gym.bounds`` reads its offsets."""
+
+REFERENCE_PACK = ("frequency", "center_x", "center_y", "radius", "orientation", "branch", "wrist_x", "wrist_y",
+                  "k", "cos_beta", "sin_beta", "beta")
+"""The packed reference (:meth:`Scenario.pack_reference`), declared once; ``blf_gym.reference``
+reads its offsets: the circle's frequency (Hz), centre (m), radius (m) and orientation (rad), the
+branch (0 smooth, 1 standard), then derived constants: the wrist circle's centre (m), k, and the
+cosine, sine and value of beta, the angle of the wrist centre."""
 
 PLANT_TAIL = (
     "viscous", "coulomb", "tanh_slope",                              # friction, FrictionParams
@@ -519,21 +526,19 @@ class Scenario:
         return np.concatenate([self.arm.pack(), np.asarray(tail, dtype=np.float64)])
 
     def pack_reference(self) -> np.ndarray:
-        """Layout: [frequency, cx, cy, radius, orientation, branch (0 smooth, 1 standard),
-        then derived constants: wrist-circle centre (wcx, wcy), k, cos, sin and value of
-        beta = angle(c_w)]."""
+        """Layout :data:`REFERENCE_PACK`."""
         r = self.reference
         l3 = self.arm.lengths[2]
         wcx = r.center[0] - l3 * math.cos(r.orientation)
         wcy = r.center[1] - l3 * math.sin(r.orientation)
         dist = math.hypot(wcx, wcy)
         k = math.sqrt(r.radius * dist / (self.arm.lengths[0] * self.arm.lengths[1]))
-        return np.array(
-            [r.frequency, r.center[0], r.center[1], r.radius, r.orientation,
-             0.0 if r.branch == "smooth" else 1.0, wcx, wcy, k, wcx / dist, wcy / dist,
-             math.atan2(wcy, wcx)],
-            dtype=np.float64,
-        )
+        values = {
+            "frequency": r.frequency, "center_x": r.center[0], "center_y": r.center[1], "radius": r.radius,
+            "orientation": r.orientation, "branch": 0.0 if r.branch == "smooth" else 1.0, "wrist_x": wcx,
+            "wrist_y": wcy, "k": k, "cos_beta": wcx / dist, "sin_beta": wcy / dist, "beta": math.atan2(wcy, wcx),
+        }
+        return np.array([values[name] for name in REFERENCE_PACK], dtype=np.float64)
 
     def with_changes(self, **changes: Any) -> "Scenario":
         """A copy with top-level fields replaced (``dataclasses.replace``)."""

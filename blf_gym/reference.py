@@ -19,9 +19,16 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from .params import Scenario
+from .params import REFERENCE_PACK, Scenario
 
-__all__ = ["reference_into", "joint_reference"]
+__all__ = ["reference_into", "joint_reference", "REFERENCE_SIGNALS"]
+
+REFERENCE_SIGNALS = ("q_d", "qd_d", "qdd_d")
+"""The vector written by :func:`reference_into`, n entries each, declared once (also the plug-in
+signals' names, :mod:`blf_gym.blocks`)."""
+_RP = {name: i for i, name in enumerate(REFERENCE_PACK)}
+_FREQ, _RADIUS, _ORIENT, _BRANCH = _RP["frequency"], _RP["radius"], _RP["orientation"], _RP["branch"]
+_WX, _WY, _K, _CB, _SB, _BETA = (_RP[k] for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))
 
 @njit(cache=True, error_model="numpy")
 def reference_into(t, rp, arm, out):
@@ -29,21 +36,21 @@ def reference_into(t, rp, arm, out):
 
     ``rp`` is :meth:`Scenario.pack_reference`; ``arm`` the packed arm (lengths are read from it).
     """
-    f = rp[0]
-    rad = rp[3]
-    phi = rp[4]
-    standard = rp[5] > 0.5
-    wcx = rp[6]
-    wcy = rp[7]
-    k = rp[8]
-    cb = rp[9]
-    sb = rp[10]
+    f = rp[_FREQ]
+    rad = rp[_RADIUS]
+    phi = rp[_ORIENT]
+    standard = rp[_BRANCH] > 0.5
+    wcx = rp[_WX]
+    wcy = rp[_WY]
+    k = rp[_K]
+    cb = rp[_CB]
+    sb = rp[_SB]
     l1 = arm[0]
     l2 = arm[1]
     om = 2.0 * np.pi * f
     nu = 0.5 * om
     # theta = (om t - beta) / 2 with beta = angle(c_w); om t = 2 theta + beta
-    theta = 0.5 * (om * t - rp[11])
+    theta = 0.5 * (om * t - rp[_BETA])
     ct = np.cos(theta)
     st = np.sin(theta)
     c2t = ct * ct - st * st
@@ -96,7 +103,7 @@ def reference_into(t, rp, arm, out):
     wry = wy * cb - wx * sb
     ex = l1 + l2 * c2
     ey = l2 * s2
-    q1 = rp[11] + np.arctan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
+    q1 = rp[_BETA] + np.arctan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
     q1d = ald - bed
     q1dd = aldd - bedd
     out[0] = q1

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
+from .bounds import KA, KB
 from .params import check_bool, check_real
 from .status import ST_DIVERGED, ST_VIOL_STEPS
 
@@ -39,12 +40,12 @@ def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):
     bad = False
     for i in range(n):
         e = x[i] - ref[i]
-        en = e / bnd[0] if e >= 0.0 else e / bnd[3]
+        en = e / bnd[KA] if e >= 0.0 else e / bnd[KB]
         en2 += en * en
         sums[SUM_E2_JOINT + i] += e * e
         un = u[i] / umax
         un2 += un * un
-        if e >= bnd[0] or e <= -bnd[3]:
+        if e >= bnd[KA] or e <= -bnd[KB]:
             bad = True
     sums[SUM_EN2] += en2
     sums[SUM_UN2] += un2

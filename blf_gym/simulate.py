@@ -33,7 +33,7 @@ from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
-from .bounds import bounds_into
+from .bounds import BOUND_LEN, KA, KB, bounds_into
 from .blocks import Connection, Controller, Observer, connect, model_length, nominal_length, nominal_model_into, work_length
 from .controller import make_controller, make_observer
 from .dynamics import (
@@ -47,7 +47,7 @@ from .dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from .params import PLANT_TAIL, Scenario, plant_length
+from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, plant_length
 from .reward import SUM_COLUMNS, SUM_E2_JOINT, SUM_EN2, SUM_ERR_MAX, SUM_SAMPLES, SUM_UN2, accumulate_sample
 from .status import LAST_COLUMNS, N_STATUS, STATUS_COLUMNS
 from .reference import reference_into
@@ -143,7 +143,7 @@ def _violates(e_or_q, ref, bnd, n):
     """True if any joint's error q - q_d is outside (-k_b, k_a) (first n entries of ``e_or_q``)."""
     for i in range(n):
         e = e_or_q[i] - ref[i]
-        if e >= bnd[0] or e <= -bnd[3]:
+        if e >= bnd[KA] or e <= -bnd[KB]:
             return True
     return False
 
@@ -160,8 +160,8 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3, o1, o2, o3):
         r[3, i] = ref[i]
         r[4, i] = ref[n + i]
         r[5, i] = x[i] - ref[i]
-        r[6, i] = bnd[0]
-        r[7, i] = bnd[3]
+        r[6, i] = bnd[KA]
+        r[7, i] = bnd[KB]
         r[8, i] = u[i]
         r[9, i] = hu[i]
         r[10, i] = ulaw[i]
@@ -367,8 +367,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         y = _fixed(w, o, n)
         nz = _fixed(w, o + n, n)
         ref = _fixed(w, o + 2 * n, 3 * n)
-        bnd = _fixed(w, o + 5 * n, 6)
-        o += 5 * n + 6
+        bnd = _fixed(w, o + 5 * n, BOUND_LEN)
+        o += 5 * n + BOUND_LEN
         u = _fixed(w, o, n)
         hu = _fixed(w, o + n, n)
         satf = _fixed(w, o + 2 * n, n)
@@ -555,7 +555,7 @@ def scratch_length(n: int, n_obs: int | None = None, n_ctrl: int = 0, n_out: int
     n_obs = 3 * n if n_obs is None else n_obs
     n_out = n if n_out is None else n_out
     nx = 2 * n + n_obs + n_ctrl
-    return (7 * nx + 5 * n + 6 + 4 * n + n_out + 2 * n * n + nominal_length(n)
+    return (7 * nx + 5 * n + BOUND_LEN + 4 * n + n_out + 2 * n * n + nominal_length(n)
             + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
 
 
@@ -835,8 +835,8 @@ class ClosedLoop:
             self._batch = _Batch(
                 plant=np.zeros((self.N, plant_length(n))),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
-                ref=np.zeros((self.N, 12)),
-                bnd=np.zeros((self.N, 5)),
+                ref=np.zeros((self.N, len(REFERENCE_PACK))),
+                bnd=np.zeros((self.N, len(BOUNDS_PACK))),
                 law_gains=np.tile(self.controller.gains, (self.N, 1)),
                 obs_gains=np.tile(self.observer.gains, (self.N, 1)),
             )
