@@ -16,6 +16,7 @@ import numpy as np
 from blf_gym.blocks import Controller, Observer
 from blf_gym.params import ArmParams
 
+from .filters import barrier_filter
 from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
 
@@ -97,7 +98,8 @@ def proposed(**kwargs: Any) -> Controller:
     """The paper's LESO + barrier-Lyapunov law; publishes z1 (rad), z2_hat = x2_hat - alpha1 (rad/s)
     and its barrier term (1/rad)."""
     return Controller("proposed", proposed_output, _gains(kwargs),
-                      outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"})
+                      outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"},
+                      filters={"barrier": barrier_filter})
 
 
 def leso(**kwargs: Any) -> Observer:

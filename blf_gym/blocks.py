@@ -75,7 +75,7 @@ from .params import ArmParams
 from .reference import REFERENCE_SIGNALS
 
 __all__ = [
-    "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "Connection", "connect", "mass_times",
+    "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "ResidualFilter", "Connection", "connect", "mass_times",
     "mass_solve", "coriolis_times", "gravity", "nominal_length", "work_length", "units",
 ]
 
@@ -171,13 +171,15 @@ BASE_SIGNALS: dict[str, tuple[str, str, str]] = {
     "k_b": ("scalar", "rad", "lower error bound (e1 > -k_b)"),
     "k_b_dot": ("scalar", "rad/s", "its rate"),
     "k_b_ddot": ("scalar", "rad/s^2", "its second derivative"),
+    "q_true": ("n", "rad", "true joint angles (for monitors; a law reading it is full-state)"),
+    "u_max": ("scalar", "N m", "the actuator's torque limit"),
     "nominal": ("model", "-", "nominal model at y, for the operators"),
     "work": ("work", "-", "scratch"),
 }
 """Signals every plug-in function may read, whatever the other blocks are."""
 _BOUND_INDEX = {name: i for i, name in enumerate(BOUND_SIGNALS)}
 _REF_INDEX = {name: i for i, name in enumerate(REFERENCE_SIGNALS)}
-_RESERVED = {*BASE_SIGNALS, "u", "state", "dstate"}
+_RESERVED = {*BASE_SIGNALS, "u", "state", "dstate", "residual"}
 _SIZE = re.compile(r"^\s*(\d*)\s*\*?\s*n\s*$")
 
 
@@ -336,6 +338,9 @@ class Controller(_PluginBase):
     """(y0 (n,), n) -> the controller's state at t = 0; default zeros."""
     nominal: ArmParams | None = None
     """The controller's model of the arm; default ``params.nominal`` or the paper's."""
+    filters: Mapping[str, Callable[..., "ResidualFilter"]] = field(default_factory=dict)
+    """Residual filters shipped with the law, by name: factories of :class:`ResidualFilter`
+    (selected with the env's ``residual_filter``)."""
     kind = "controller"
 
     def __post_init__(self) -> None:
@@ -360,8 +365,20 @@ class Controller(_PluginBase):
 
     @property
     def full_state(self) -> bool:
-        """True if the law reads the true velocity (BC); results say so."""
-        return "qd_true" in self._out_params or "qd_true" in self._upd_params
+        """True if the law reads the true state (BC reads the velocity); results say so."""
+        return bool({"qd_true", "q_true"} & {*self._out_params, *self._upd_params})
+
+    def make_filter(self, spec: "str | ResidualFilter | None") -> "ResidualFilter | None":
+        """The residual filter ``spec`` names (one of :attr:`filters`), or the object itself."""
+        if spec is None or isinstance(spec, ResidualFilter):
+            return spec
+        if not isinstance(spec, str) or spec not in self.filters:
+            raise ValueError(f"residual_filter must be None or one of the filters shipped with {self.owner}, "
+                             f"{sorted(self.filters)} (or a blf_gym.blocks.ResidualFilter), got {spec!r}")
+        f = self.filters[spec]()
+        if not isinstance(f, ResidualFilter):
+            raise ValueError(f"{self.owner}: filter {spec!r} did not produce a blf_gym.blocks.ResidualFilter")
+        return f
 
     def output_size(self, n: int) -> int:
         return sum(size_of(s, n, self.owner) for s in self.outputs.values())
@@ -432,6 +449,47 @@ class Observer(_PluginBase):
         return x
 
 
+@dataclass(frozen=True, eq=False)
+class ResidualFilter(_PluginBase):
+    """A filter between a learned residual and the actuator, shipped with a law: ``apply`` reads the
+    raw residual (``residual``, N m) and any signal, and writes the filtered one ``r_f`` and its other
+    declared outputs. Two output names are monitors the kernel counts per integration step:
+    ``breach`` (> 0 when the filter's own condition does not hold) and ``assumptions`` (< 0.5 when an
+    assumption of its guarantee fails). Monitors may read the true state (q_true, qd_true); ``r_f``
+    must be computed from measured signals."""
+
+    name: str
+    apply: Callable
+    params: Any = None
+    outputs: Mapping[str, Any] = field(default_factory=lambda: {"r_f": "n"})
+    nominal: ArmParams | None = None
+    kind = "filter"
+    states = {}
+
+    def __post_init__(self) -> None:
+        self._init_common(self.name, self.params, self.nominal)
+        o = self.owner
+        outs = _parts(o, "output", self.outputs)
+        if "r_f" not in outs or outs["r_f"] != "n" or next(iter(outs)) != "r_f":
+            raise ValueError(f"{o}: outputs must declare the filtered residual 'r_f' first, with size 'n'")
+        for mon in ("breach", "assumptions"):
+            if mon in outs and outs[mon] != 1:
+                raise ValueError(f"{o}: the monitor output {mon!r} must have size 1")
+        object.__setattr__(self, "outputs", outs)
+        object.__setattr__(self, "_apply_params", _fn_params(f"{o}.apply", self.apply))
+
+    def output_size(self, n: int) -> int:
+        return sum(size_of(s, n, self.owner) for s in self.outputs.values())
+
+    def output_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+        out, o = {}, 0
+        for k, s in self.outputs.items():
+            m = size_of(s, n, self.owner)
+            out[k] = (o, m)
+            o += m
+        return out
+
+
 def _zero_output(u_law):
     for i in range(u_law.shape[0]):
         u_law[i] = 0.0
@@ -443,7 +501,7 @@ NO_CONTROLLER = Controller("none", _zero_output)
 # ---------------------------------------------------------------------------------------------
 # connecting blocks: signal resolution, generated glue, trial call
 
-_GLUE_ARGS = "t, y, qd, xo, xc, ref, bnd, nom, og, cg, u, cout, dxo, dxc, work"
+_GLUE_ARGS = "t, y, q, qd, xo, xc, ref, bnd, nom, og, cg, fg, u, cout, r, fout, umax, dxo, dxc, work"
 """The fixed signature of the generated glue functions the kernel calls."""
 
 
@@ -461,6 +519,15 @@ class Connection:
     out_offsets: dict
     module: Any
     digest: str
+    filter: "ResidualFilter | None" = None
+    n_fout: int = 0
+    fout_offsets: dict = field(default_factory=dict)
+    plain: bool = False
+    """With a filter: the residual is the agent's whole torque, and the filter sees it minus u_law."""
+
+    @property
+    def res_filter(self):
+        return self.module.res_filter
 
     @property
     def ctrl_output(self):
@@ -479,68 +546,75 @@ class Connection:
         return self.obs_offsets.get(name)
 
 
-def _expr(role: str, name: str, ctrl: Controller, obs: Observer, n: int, fn_owner: str, after_output: bool) -> str:
-    """The glue's expression for a parameter ``name`` of a function of block ``role``."""
-    if name == "t":
-        return "t"
-    if name == "y":
-        return "y"
-    if name == "qd_true":
-        return "qd"
+_ROLE_OWNER = {"ctrl_out": "output", "filter": "apply", "obs": "rhs", "ctrl_upd": "update"}
+
+
+def _expr(role: str, name: str, ctrl: Controller, obs: Observer, filt: "ResidualFilter | None", n: int,
+          fn_owner: str) -> str:
+    """The glue's expression for a parameter ``name`` of a function of ``role`` (ctrl_out: the law's
+    output, filter: the residual filter, obs: the observer's rhs, ctrl_upd: the law's update)."""
+    simple = {"t": "t", "y": "y", "q_true": "q", "qd_true": "qd", "nominal": "nom", "work": "work", "u_max": "umax"}
+    if name in simple:
+        return simple[name]
     if name in _REF_INDEX:
         return f"_fixed(ref, {_REF_INDEX[name] * n}, {n})"
     if name in _BOUND_INDEX:
         return f"bnd[{_BOUND_INDEX[name]}]"
-    if name == "nominal":
-        return "nom"
-    if name == "work":
-        return "work"
-    own, other = (ctrl, obs) if role == "ctrl" else (obs, ctrl)
-    x, dx, g = ("xc", "dxc", "cg") if role == "ctrl" else ("xo", "dxo", "og")
-    writes_state = fn_owner.endswith((".update", ".rhs"))
+    own = {"ctrl_out": ctrl, "ctrl_upd": ctrl, "obs": obs, "filter": filt}[role]
+    x, dx, g = {"ctrl_out": ("xc", "dxc", "cg"), "ctrl_upd": ("xc", "dxc", "cg"), "obs": ("xo", "dxo", "og"),
+                "filter": (None, None, "fg")}[role]
     if name in own.param_layout:
         off, length = own.param_layout[name]
         return f"{g}[{off}]" if length is None else f"_fixed({g}, {off}, {length})"
-    own_states = own.state_offsets(n)
-    if name == "state":
+    own_states = own.state_offsets(n) if x else {}
+    if name == "state" and x:
         return x
     if name in own_states:
         off, m = own_states[name]
         return f"_fixed({x}, {off}, {m})"
-    if name == "dstate" or (name.startswith("d_") and name[2:] in own_states):
-        if not writes_state:
-            raise ValueError(f"{fn_owner} cannot write {name!r}: state derivatives are written by the update/rhs "
-                             "function")
+    if x and (name == "dstate" or (name.startswith("d_") and name[2:] in own_states)):
+        if role == "ctrl_out":
+            raise ValueError(f"{fn_owner} cannot write {name!r}: state derivatives are written by the update function")
         if name == "dstate":
             return dx
         off, m = own_states[name[2:]]
         return f"_fixed({dx}, {off}, {m})"
     outs = ctrl.output_offsets(n)
     if name in outs:
-        if fn_owner == f"{ctrl.owner}.output" or after_output:
-            off, m = outs[name]
-            return f"_fixed(cout, {off}, {m})"
-        raise ValueError(f"{fn_owner} reads {name!r}, which the controller computes after it")
+        off, m = outs[name]
+        return f"_fixed(cout, {off}, {m})"
+    fouts = filt.output_offsets(n) if filt is not None else {}
+    if name in fouts:
+        if role in ("filter", "obs", "ctrl_upd"):
+            off, m = fouts[name]
+            return f"_fixed(fout, {off}, {m})"
+        raise ValueError(f"{fn_owner} reads {name!r}, which the residual filter computes after it")
+    if name == "residual":
+        if role == "filter":
+            return "r"
+        raise ValueError(f"{fn_owner} reads 'residual', which only a residual filter reads")
     if name == "u":
-        if after_output:
+        if role in ("obs", "ctrl_upd"):
             return "u"
-        raise ValueError(f"{fn_owner} reads 'u', the commanded torque, which is computed from its own output u_law; "
-                         "read it in update (or the observer)")
-    if role == "ctrl":
-        obs_states = obs.state_offsets(n)
-        if name in obs_states:
-            off, m = obs_states[name]
-            return f"_fixed(xo, {off}, {m})"
-        raise ValueError(f"{fn_owner} reads the signal {name!r}, which no block provides with observer "
-                         f"{obs.name!r} (its states: {list(obs_states)}); signals on offer: "
-                         f"{sorted(set(BASE_SIGNALS) | set(obs_states) | set(own_states) | set(own.param_layout) | set(outs))}")
-    raise ValueError(f"{fn_owner} reads the signal {name!r}, which no block provides; signals on offer: "
-                     f"{sorted(set(BASE_SIGNALS) | set(own_states) | set(own.param_layout) | set(outs) | {'u'})}")
+        raise ValueError(f"{fn_owner} reads 'u', the commanded torque, which is computed from its own output; "
+                         "read it in the controller's update (or the observer)")
+    obs_states = obs.state_offsets(n)
+    if role != "obs" and name in obs_states:
+        off, m = obs_states[name]
+        return f"_fixed(xo, {off}, {m})"
+    if role == "filter" and name in ctrl.param_layout:
+        off, length = ctrl.param_layout[name]
+        return f"cg[{off}]" if length is None else f"_fixed(cg, {off}, {length})"
+    offer = set(BASE_SIGNALS) | set(own_states) | set(own.param_layout) | set(outs) | set(fouts)
+    if role != "obs":
+        offer |= set(obs_states)
+    raise ValueError(f"{fn_owner} reads the signal {name!r}, which no block provides with observer {obs.name!r} "
+                     f"(its states: {list(obs_states)}); signals on offer: {sorted(offer)}")
 
 
-def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Observer, n: int, owner: str,
-          after_output: bool) -> str:
-    args = ", ".join(_expr(role, p, ctrl, obs, n, owner, after_output) for p in params)
+def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Observer, filt: Any, n: int,
+          owner: str) -> str:
+    args = ", ".join(_expr(role, p, ctrl, obs, filt, n, owner) for p in params)
     return f"    return {fn_name}({args})\n"
 
 
@@ -573,42 +647,58 @@ def _compiled(fn: Any):
 _CONNECTIONS: dict[tuple, Connection] = {}
 
 
-def connect(controller: Controller, observer: Observer, n: int) -> Connection:
+def connect(controller: Controller, observer: Observer, n: int, residual_filter: "ResidualFilter | None" = None,
+            plain: bool = False) -> Connection:
     """Check that every signal each function reads is provided, generate and compile the glue, and
-    run each function once on trial inputs; ValueError naming the plug-in and the problem."""
-    c, o = controller, observer
+    run each function once on trial inputs; ValueError naming the plug-in and the problem.
+    ``residual_filter`` goes between the residual and the actuator; with ``plain`` the residual is
+    the agent's whole torque and the filter acts on its difference to the law's."""
+    c, o, f = controller, observer, residual_filter
     if not isinstance(c, Controller):
         raise ValueError(f"connect: controller must be a blf_gym.blocks.Controller, got {c!r}")
     if not isinstance(o, Observer):
         raise ValueError(f"connect: observer must be a blf_gym.blocks.Observer, got {o!r}")
+    if not (f is None or isinstance(f, ResidualFilter)):
+        raise ValueError(f"connect: residual_filter must be None or a blf_gym.blocks.ResidualFilter, got {f!r}")
+    if plain and f is None:
+        raise ValueError("connect: plain=True needs a residual filter")
     if c.nominal.n_links != n or o.nominal.n_links != n:
         raise ValueError(f"{c.owner} and {o.owner} must model an arm of {n} links like the plant")
     if not np.array_equal(c.nominal.pack(), o.nominal.pack()):
         raise ValueError(f"{c.owner} and {o.owner} must share one nominal model")
     # the compiled code depends on the functions and the layouts, not on the parameter values
+    fkey = None if f is None else (f.name, f.apply, tuple(f.outputs.items()), tuple(f.param_layout.items()))
     key = (c.name, c.output, c.update, tuple(c.outputs.items()), tuple(c.states.items()),
-           tuple(c.param_layout.items()), o.name, o.rhs, tuple(o.states.items()), tuple(o.param_layout.items()), n)
+           tuple(c.param_layout.items()), o.name, o.rhs, tuple(o.states.items()), tuple(o.param_layout.items()), n,
+           fkey, plain)
     if key in _CONNECTIONS:
         return _CONNECTIONS[key]
     src = "# generated by blf_gym.blocks.connect: the glue between the kernel and the plug-ins\n"
-    src += f"def ctrl_output({_GLUE_ARGS}):\n" + _call("ctrl", "_c_output", c._out_params, c, o, n, f"{c.owner}.output", False)
-    src += f"\ndef obs_rhs({_GLUE_ARGS}):\n" + _call("obs", "_o_rhs", o._rhs_params, c, o, n, f"{o.owner}.rhs", True)
+    src += f"def ctrl_output({_GLUE_ARGS}):\n" + _call("ctrl_out", "_c_output", c._out_params, c, o, f, n,
+                                                       f"{c.owner}.output")
+    src += f"\ndef res_filter({_GLUE_ARGS}):\n"
+    src += _call("filter", "_f_apply", f._apply_params, c, o, f, n, f"{f.owner}.apply") if f else "    pass\n"
+    src += f"\ndef obs_rhs({_GLUE_ARGS}):\n" + _call("obs", "_o_rhs", o._rhs_params, c, o, f, n, f"{o.owner}.rhs")
     src += f"\ndef ctrl_update({_GLUE_ARGS}):\n"
-    src += (_call("ctrl", "_c_update", c._upd_params, c, o, n, f"{c.owner}.update", True) if c.update else "    pass\n")
+    src += (_call("ctrl_upd", "_c_update", c._upd_params, c, o, f, n, f"{c.owner}.update") if c.update
+            else "    pass\n")
     h = hashlib.sha1(src.encode())
-    for fn in (c.output, c.update, o.rhs):
+    for fn in (c.output, c.update, o.rhs, f.apply if f else None):
         if fn is not None:
             py = getattr(fn, "py_func", fn)
             h.update(f"{py.__module__}.{py.__qualname__}".encode())
             h.update(_source_of(fn))
     h.update(Path(__file__).read_bytes())
     digest = h.hexdigest()[:12]
-    module = _load_glue(src, f"{c.name}__{o.name}__n{n}__{digest}", {
+    fname = "" if f is None else f"__{f.name}{'_plain' if plain else ''}"
+    module = _load_glue(src, f"{c.name}__{o.name}{fname}__n{n}__{digest}", {
         "_c_output": _compiled(c.output), "_o_rhs": _compiled(o.rhs),
         "_c_update": _compiled(c.update) if c.update else None,
+        "_f_apply": _compiled(f.apply) if f else None,
     })
     conn = Connection(c, o, n, o.state_size(n), c.state_size(n), c.output_size(n), o.state_offsets(n),
-                      c.output_offsets(n), module, digest)
+                      c.output_offsets(n), module, digest, f, f.output_size(n) if f else 0,
+                      f.output_offsets(n) if f else {}, plain)
     _trial(conn)
     _CONNECTIONS[key] = conn
     return conn
@@ -635,7 +725,7 @@ def _load_glue(src: str, name: str, bindings: dict) -> Any:
     mod.__file__ = str(path) if path else f"<{modname}>"
     code = compile(src, mod.__file__, "exec")
     exec(code, mod.__dict__)
-    for fname in ("ctrl_output", "obs_rhs", "ctrl_update"):
+    for fname in ("ctrl_output", "res_filter", "obs_rhs", "ctrl_update"):
         setattr(mod, fname, njit(inline="always", error_model="numpy", cache=path is not None)(getattr(mod, fname)))
     sys.modules[modname] = mod
     return mod
@@ -669,18 +759,25 @@ def _trial(conn: Connection) -> None:
     xo = o.initial(y)
     xc = c.initial(y)
     qd = qd_d.copy()
+    f = conn.filter
     u = np.zeros(n)
     cout = np.full(conn.n_out, np.nan)
+    fout = np.full(conn.n_fout, np.nan)
     dxo = np.full(conn.n_obs, np.nan)
     dxc = np.full(conn.n_ctrl, np.nan)
+    r = np.full(n, 1.0)
     work = np.zeros(work_length(n))
-    args = (0.0, y, qd, xo, xc, ref, bnd, nom, o.gains, c.gains, u, cout, dxo, dxc, work)
-    for fname, owner, out, label in (("ctrl_output", f"{c.owner}.output", cout, "its outputs"),
-                                     ("obs_rhs", f"{o.owner}.rhs", dxo, "dstate"),
-                                     ("ctrl_update", f"{c.owner}.update", dxc, "dstate")):
+    fg = f.gains if f is not None else np.zeros(0)
+    args = (0.0, y, q_d.copy(), qd, xo, xc, ref, bnd, nom, o.gains, c.gains, fg, u, cout, r, fout,
+            float(sc.sim.max_torque), dxo, dxc, work)
+    calls = [("ctrl_output", f"{c.owner}.output", cout, "its outputs")]
+    if f is not None:
+        calls.append(("res_filter", f"{f.owner}.apply", fout, "its outputs"))
+    calls += [("obs_rhs", f"{o.owner}.rhs", dxo, "dstate"), ("ctrl_update", f"{c.owner}.update", dxc, "dstate")]
+    for fname, owner, out, label in calls:
         glue = getattr(conn.module, fname).py_func
         g = glue.__globals__
-        saved = {k: g[k] for k in ("_c_output", "_o_rhs", "_c_update", "_fixed") if g.get(k) is not None}
+        saved = {k: g[k] for k in ("_c_output", "_o_rhs", "_c_update", "_f_apply", "_fixed") if g.get(k) is not None}
         try:
             for k, v in saved.items():
                 g[k] = v.py_func if k != "_fixed" else _py_fixed
@@ -694,8 +791,9 @@ def _trial(conn: Connection) -> None:
                              "handed and returns nothing")
         if fname == "ctrl_output":
             np.clip(cout[:n], -1e300, 1e300, out=u)
+        elif fname == "res_filter":
+            np.clip(cout[:n] + fout[:n], -1e300, 1e300, out=u)
         bad = np.flatnonzero(~np.isfinite(out))
         if bad.size:
             raise ValueError(f"{owner} left entries {bad.tolist()} of {label} unwritten or non-finite on a trial "
                              f"call at the paper's start (size {out.size})")
-

@@ -23,7 +23,9 @@ from .params import DT_MIN, PRESETS, REFERENCE_PACK, Scenario, check_bool, check
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import (
+    ST_ASSUMPTION_FAILURES,
     ST_DIVERGED,
+    ST_FILTER_BREACHES,
     ST_FIRST_VIOL,
     ST_SAT_STEPS,
     ST_VIOL_SAMPLES,
@@ -245,8 +247,9 @@ def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privilege
 
 
 # per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
-EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP = range(6)
-N_EP_INT = 6
+(EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP, EP_BREACHES,
+ EP_ASSUME_FAIL) = range(8)
+N_EP_INT = 8
 EP_SAMPLES, EP_E2_JOINT = range(2)
 
 
@@ -261,6 +264,8 @@ def _accumulate_episode(status, sums, ksteps, ep_int, ep_f):
             ep_int[b, EP_FIRST_VIOL] = status[b, ST_FIRST_VIOL]
         ep_int[b, EP_SAT_STEPS] += status[b, ST_SAT_STEPS]
         ep_int[b, EP_VIOL_SAMPLES] += status[b, ST_VIOL_SAMPLES]
+        ep_int[b, EP_BREACHES] += status[b, ST_FILTER_BREACHES]
+        ep_int[b, EP_ASSUME_FAIL] += status[b, ST_ASSUMPTION_FAILURES]
         if ep_int[b, EP_DIV_CODE] == 0 and status[b, ST_DIVERGED] != 0:
             ep_int[b, EP_DIV_CODE] = status[b, ST_DIVERGED]
             ep_int[b, EP_DIV_STEP] = ksteps[b]
@@ -316,6 +321,7 @@ class EnvCore:
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
         observation_extras: Sequence[str] = (),
+        residual_filter: str | None = None,
         threads: int | None = None,
         record: bool = False,
         single: bool = False,
@@ -368,6 +374,9 @@ class EnvCore:
                 raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
                                  f"accepted: {names}")
         threads = check_int(o, "threads", threads, lo=1, none_ok=True)
+        if not (residual_filter is None or isinstance(residual_filter, str)):
+            raise ValueError(f"{o} residual_filter must be None or the name of a filter shipped with the law "
+                             f"(e.g. 'barrier'), got {residual_filter!r}")
         base, suite = resolve_scenario(scenario)
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
@@ -417,9 +426,26 @@ class EnvCore:
         w = reward_weights
         self._wvec = reward_weights.pack(self.terminate_on_violation)
         self.n = self.base.arm.n_links
-        self.loop = ClosedLoop([self.base] * self.num_envs, self.controller, self.observer, threads=threads)
+        self.residual_filter = residual_filter
+        if residual_filter is not None and not self.residual:
+            # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
+            inner, plain = make_controller("proposed"), True
+        else:
+            inner, plain = self.controller, False
+        if residual_filter is not None and not inner.filters:
+            raise ValueError(f"{o} residual_filter={residual_filter!r}: the {inner.name!r} law ships no residual "
+                             "filter (the proposed law has 'barrier')")
+        try:
+            self.loop = ClosedLoop([self.base] * self.num_envs, inner, self.observer, threads=threads,
+                                   residual_filter=residual_filter, plain=plain)
+        except ValueError as exc:
+            raise ValueError(f"{o} {exc}") from None
+        self._filter_slices = [(name, slice(N_LAST * self.n + self.loop.connection.n_out + off,
+                                            N_LAST * self.n + self.loop.connection.n_out + off + m))
+                               for name, (off, m) in self.loop.connection.fout_offsets.items()]
+        # the law's outputs besides u_law (already info["u_law"]), for info["controller_outputs"]
         self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
-                            for name, (off, m) in self.loop.connection.out_offsets.items()]
+                            for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
         self.observation_extras = tuple(observation_extras)
         self._x2h, self._x3h = self._observer_offset("x2_hat"), self._observer_offset("x3_hat")
         self._extras = [self._extra_source(g) for g in self.observation_extras]
@@ -662,6 +688,8 @@ class EnvCore:
             "x3": last[:, LAST_X3 * n : (LAST_X3 + 1) * n],
             "x3_hat": last[:, LAST_X3HAT * n : (LAST_X3HAT + 1) * n],
             "controller_outputs": {name: last[:, sl] for name, sl in self._out_slices},
+            **({"filter_outputs": {name: last[:, sl] for name, sl in self._filter_slices}}
+               if self._filter_slices else {}),
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
             "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
@@ -700,6 +728,8 @@ class EnvCore:
             "rmse_deg": rmse,
             "violating_samples": int(ei[EP_VIOL_SAMPLES]),
             "violating_steps": int(ei[EP_VIOL_STEPS]),
+            "filter_breaches": int(ei[EP_BREACHES]) if self.residual_filter else None,
+            "assumption_failures": int(ei[EP_ASSUME_FAIL]) if self.residual_filter else None,
             "first_violation_s": None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
             "diverged": bool(ei[EP_DIV_CODE]),
             "samples": int(samples),
@@ -730,6 +760,8 @@ class EnvCore:
                           step_violations=int(ei[EP_VIOL_STEPS]),
                           first_violation_step_time=None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
                           saturated_steps=int(ei[EP_SAT_STEPS]), divergence_code=code,
+                          filter_breaches=int(ei[EP_BREACHES]), assumption_failures=int(ei[EP_ASSUME_FAIL]),
+                          residual_filter=self.residual_filter,
                           message=divergence_message(code, t_div or 0.0, dt, self.sim.unstable_steps,
                                                      self.controller.name) if code else "")
 

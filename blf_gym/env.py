@@ -88,7 +88,10 @@ class PlanarBLFEnv(gym.Env):
     ``u_law`` (at the start of the step's last integration step), ``u_residual`` (N m),
     ``saturated`` (the actuator limit clipped at some step), ``x3`` and ``x3_hat`` (true and
     estimated lumped disturbance against the nominal model, rad/s^2, both at the step's last 1 ms
-    sample, t_end - 1 ms), ``termination_reason``, ``truncation_reason``, ``reward_info``.
+    sample, t_end - 1 ms), ``controller_outputs`` (the inner law's published outputs besides u_law,
+    by name, at the start of the step's last integration step: the proposed law's ``z1`` rad,
+    ``z2_hat`` rad/s and ``barrier`` 1/rad), ``termination_reason``, ``truncation_reason``,
+    ``reward_info``.
     The privileged observation's true x3 is that same sample's.
 
     ## Arguments

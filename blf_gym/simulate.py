@@ -34,7 +34,7 @@ from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
 from .bounds import BOUND_LEN, KA, KB, bounds_into
-from .blocks import Connection, Controller, Observer, connect, model_length, nominal_length, nominal_model_into, work_length
+from .blocks import Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length, nominal_model_into, work_length
 from .controller import make_controller, make_observer
 from .dynamics import (
     WORK_PER_LINK,
@@ -78,8 +78,8 @@ _FX, _MZ, _ONSET = _T["f_x"], _T["moment"], _T["onset"]
 _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"], _T["error_rtol"], _T["error_atol"]
 _UNSTABLE_STEPS = _T["unstable_steps"]
 
-ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = (
-    STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
+(ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_FILTER_BREACHES,
+ ST_ASSUMPTION_FAILURES) = (STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
 LAST_U, LAST_ULAW, LAST_SAT, LAST_X3, LAST_X3HAT = (LAST_COLUMNS.index(c) for c in LAST_COLUMNS)
 N_LAST = len(LAST_COLUMNS)
 
@@ -241,15 +241,16 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
     return False
 
 
-def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og, ref, bnd, cout,
-                    u, hu, satf, dx, pw, Mp, Lp, wl, wo):
+def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og, fg, ref, bnd, cout,
+                    fout, rr, u, hu, satf, dx, pw, Mp, Lp, wl, wo):
     """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
 
     The measurement is y = q(stage) + noise, the noise sample held over the step, so without noise
     the law and the observer see the angles at every stage like Simulink's continuous blocks.
     ``x`` = [q, qd, observer states, controller states]. ``_ctrl_output``, ``_obs_rhs`` and
     ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
-    ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`.
+    ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter``
+    turns the residual (with ``_PLAIN``, the agent's torque minus u_law) into ``fout[:n]``.
     """
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nn = n * n
@@ -291,10 +292,14 @@ def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og,
             nom[nn + 3 * n + i] = Lp[i]
     else:
         nominal_model_into(y, _fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
-    _ctrl_output(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wl)  # noqa: F821
     umax = plant[o + _UMAX]
+    _ctrl_output(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+    if _FILTER:  # noqa: F821 (compile-time constant)
+        for i in range(n):
+            rr[i] = res[i] - cout[i] if _PLAIN else res[i]  # noqa: F821
+        _res_filter(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     for i in range(n):
-        ui = cout[i] + res[i]
+        ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
         s = 0.0
         if ui > umax:
             ui = umax
@@ -317,11 +322,11 @@ def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og,
                                                        plant[o + _PSI])
         dx[i] = qd[i]
     ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
-    _obs_rhs(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wo)  # noqa: F821
-    _ctrl_update(t, y, qd, xo, xc, ref, bnd, nom, og, lg, u, cout, dxo, dxc, wl)  # noqa: F821
+    _obs_rhs(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
+    _ctrl_update(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
 
 
-def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, residual,
+def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
                       noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
 
@@ -376,6 +381,10 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         o += 4 * n
         cout = _fixed(w, o, _NOUT)  # noqa: F821 (the controller's outputs, u_law first)
         o += _NOUT  # noqa: F821
+        fout = _fixed(w, o, _NFOUT)  # noqa: F821 (the residual filter's outputs, r_f first)
+        o += _NFOUT  # noqa: F821
+        rr = _fixed(w, o, n)  # the residual the filter sees
+        o += n
         Mp = _fixed(w, o, n * n)
         Lp = _fixed(w, o + n * n, n * n)
         o += 2 * n * n
@@ -399,6 +408,7 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         bp_b = bp[b]
         lg_b = lg[b]
         og_b = og[b]
+        fg_b = fgains[b]
         plant_b = plant[b]
         nom_b = nominal[b]
         arm_b = plant_b[: 2 * n + 1]
@@ -472,8 +482,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     for i in range(nx):
                         xs[i] = xn[i]
                 if not (st == 0 and have_k0):
-                    _stage(ts, xs, nz, y, res_b, plant_b, nom, same_arm, rp_b, bp_b, lg_b, og_b,  # noqa: F821
-                           ref, bnd, cout, u, hu, satf, kst, pw, Mp, Lp, wl, wo)
+                    _stage(ts, xs, nz, y, res_b, plant_b, nom, same_arm, rp_b, bp_b, lg_b, og_b, fg_b,  # noqa: F821
+                           ref, bnd, cout, fout, rr, u, hu, satf, kst, pw, Mp, Lp, wl, wo)
                 if st == 3:
                     # the embedded error estimate grows without bound when h is outside ODE3's
                     # stability region, even when the actuator limit keeps the state finite
@@ -490,6 +500,10 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
                     halt = True
                     break
+                if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
+                    st_b[ST_FILTER_BREACHES] += 1
+                if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
+                    st_b[ST_ASSUMPTION_FAILURES] += 1
                 if k % sps == 0:
                     # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
                     if recording:
@@ -518,6 +532,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                     last_b[LAST_SAT * n + i] = satf[i]
                 for i in range(_NOUT):  # noqa: F821
                     last_b[N_LAST * n + i] = cout[i]
+                for i in range(_NFOUT):  # noqa: F821
+                    last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
             if committed:
                 for i in range(nx):
                     x[i] = xn[i]
@@ -549,13 +565,15 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
         sm_b[SUM_ERR_MAX] = err_max
 
 
-def scratch_length(n: int, n_obs: int | None = None, n_ctrl: int = 0, n_out: int | None = None) -> int:
+def scratch_length(n: int, n_obs: int | None = None, n_ctrl: int = 0, n_out: int | None = None,
+                   n_fout: int = 0) -> int:
     """Per-arm scratch the kernel needs (must match the views carved in _advance_template); the
-    default sizes are the LESO's 3n states, no controller states and the torque as only output."""
+    default sizes are the LESO's 3n states, no controller states, the torque as only output and no
+    filter."""
     n_obs = 3 * n if n_obs is None else n_obs
     n_out = n if n_out is None else n_out
     nx = 2 * n + n_obs + n_ctrl
-    return (7 * nx + 5 * n + BOUND_LEN + 4 * n + n_out + 2 * n * n + nominal_length(n)
+    return (7 * nx + 5 * n + BOUND_LEN + 4 * n + n_out + n_fout + n + 2 * n * n + nominal_length(n)
             + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
 
 
@@ -637,14 +655,20 @@ def _specialise(conn: Connection):
         n = conn.n
         digest = hashlib.sha1((_source_digest() + conn.digest).encode()).hexdigest()[:10]
         pair = f"{conn.controller.name}__{conn.observer.name}"
+        if conn.filter is not None:
+            pair += f"__{conn.filter.name}{'_plain' if conn.plain else ''}"
         tag = f"{pair}__{digest}"
         off = {k: 2 * n + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
                for k in ("x1_hat", "x2_hat", "x3_hat")}
+        fo = conn.fout_offsets
         sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": 2 * n + conn.n_obs + conn.n_ctrl,
-                 "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"]}
+                 "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"],
+                 "_FILTER": conn.filter is not None, "_PLAIN": conn.plain, "_NFOUT": conn.n_fout,
+                 "_BREACH": fo["breach"][0] if "breach" in fo else -1,
+                 "_ASSUME": fo["assumptions"][0] if "assumptions" in fo else -1}
         stage = _clone(_stage_template, f"stage__n{n}__{tag}",
                        {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
-                        **sizes}, inline="always")
+                        "_res_filter": conn.res_filter, **sizes}, inline="always")
         kernel = _clone(_advance_template, f"advance__n{n}__{tag}", {"_stage": stage, **sizes}, nogil=True, _nrt=False)
         cache = _cache_dir(kernel)
         _remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
@@ -711,6 +735,12 @@ class Trajectory:
     """0 healthy, 1 non-finite or beyond SimParams.divergence_limit, 2 numerically unstable."""
     wall_s: float = 0.0
     message: str = ""
+    filter_breaches: int = 0
+    """With a residual filter: integration steps where its condition did not hold (should be 0)."""
+    assumption_failures: int = 0
+    """With a residual filter: integration steps where an assumption of its guarantee failed."""
+    residual_filter: str | None = None
+    """The residual filter the run went through (None: none)."""
 
     def __getattr__(self, name: str) -> np.ndarray:
         signals = self.__dict__.get("signals", {})
@@ -740,6 +770,7 @@ class _Batch:
     bnd: np.ndarray
     law_gains: np.ndarray
     obs_gains: np.ndarray
+    filter_gains: np.ndarray
 
 
 class ClosedLoop:
@@ -756,6 +787,8 @@ class ClosedLoop:
         controller: str | Controller = "proposed",
         observer: str | Observer = "leso",
         threads: int | None = None,
+        residual_filter: "str | ResidualFilter | None" = None,
+        plain: bool = False,
     ) -> None:
         if len(scenarios) == 0:
             raise ValueError("ClosedLoop needs at least one scenario")
@@ -779,12 +812,17 @@ class ClosedLoop:
         n = self.n
         if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
             raise ValueError("controller/observer nominal model must have as many links as the plant")
-        self.connection = connect(self.controller, self.observer, n)
+        self.residual_filter = self.controller.make_filter(residual_filter)
+        """The residual filter between the residual and the actuator (None: none)."""
+        self.plain = bool(plain)
+        """With a filter: the residual passed to advance() is the agent's whole torque."""
+        self.connection = connect(self.controller, self.observer, n, self.residual_filter, self.plain)
         self._kernel = _specialise(self.connection)
         fresh = not _is_cached(self._kernel)
         if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
-            compile_notice(self.controller.name, self.observer.name, _cache_dir(self._kernel))
+            label = self.controller.name + (f" + {self.residual_filter.name} filter" if self.residual_filter else "")
+            compile_notice(label, self.observer.name, _cache_dir(self._kernel))
         c = self.connection
         self.N = len(scenarios)
         self.nx = 2 * n + c.n_obs + c.n_ctrl
@@ -794,10 +832,10 @@ class ClosedLoop:
         self.unstable_run = np.zeros(self.N, dtype=np.int64)
         """Per arm, the consecutive integration steps the instability check has failed so far
         (carried across calls, reset with the arm)."""
-        self.last = np.zeros((self.N, N_LAST * n + c.n_out))
+        self.last = np.zeros((self.N, N_LAST * n + c.n_out + c.n_fout))
         """Per arm, the columns of blf_gym.status.LAST_COLUMNS (n each), then the controller's
         outputs in its declared order (see :meth:`outputs`)."""
-        self._scratch = np.zeros((self.N, scratch_length(n, c.n_obs, c.n_ctrl, c.n_out)))
+        self._scratch = np.zeros((self.N, scratch_length(n, c.n_obs, c.n_ctrl, c.n_out, c.n_fout)))
         self._zeros_residual = np.zeros((self.N, n))
         self._no_noise = np.zeros((self.N, 0, n))
         self._no_record = np.zeros((self.N, 0, N_CHANNELS, n))
@@ -839,6 +877,8 @@ class ClosedLoop:
                 bnd=np.zeros((self.N, len(BOUNDS_PACK))),
                 law_gains=np.tile(self.controller.gains, (self.N, 1)),
                 obs_gains=np.tile(self.observer.gains, (self.N, 1)),
+                filter_gains=np.tile(self.residual_filter.gains if self.residual_filter else np.zeros(0),
+                                     (self.N, 1)),
             )
         b = self._batch
         for i, sc in zip(idx, scenarios):
@@ -912,18 +952,18 @@ class ClosedLoop:
         b = self._batch
         if self.threads <= 1 or N == 1:
             self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
-                         b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, res, nz, bool(terminate), rec,
-                         nrec, status, self.last, self._scratch, sums, self.unstable_run)
+                         b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains, res, nz, bool(terminate),
+                         rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
             self.sums = sums
             return rec, nrec, status
-        arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains,
+        arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains,
                   res, nz, rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
 
         def run(lo: int, hi: int) -> None:
             a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
             self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
-                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], bool(terminate),
-                         a[10], a[11], a[12], a[13], a[14], a[15], a[16])
+                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], bool(terminate),
+                         a[11], a[12], a[13], a[14], a[15], a[16], a[17])
 
         # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and write
         # into views of the shared arrays. Each arm's arithmetic is the same as alone.
@@ -985,6 +1025,7 @@ def _trajectory(sc: Scenario, controller: str, dt: float, rec: np.ndarray, nrec:
         step_violations=int(status[ST_VIOL_STEPS]),
         first_violation_step_time=None if fv < 0 else fv * dt,
         saturated_steps=int(status[ST_SAT_STEPS]), divergence_code=code, wall_s=wall, message=msg,
+        filter_breaches=int(status[ST_FILTER_BREACHES]), assumption_failures=int(status[ST_ASSUMPTION_FAILURES]),
     )
 
 
@@ -994,13 +1035,17 @@ def simulate_batch(
     observer: str | Observer = "leso",
     noise_seeds: Sequence[int] | None = None,
     threads: int | None = None,
+    residual: np.ndarray | None = None,
+    residual_filter: "str | ResidualFilter | None" = None,
 ) -> list[Trajectory]:
     """Run whole episodes (each scenario's ``sim.duration``) for N scenarios in one kernel call.
 
     The law is evaluated at every ODE3 stage; episodes are not terminated on violation (they are
     counted). A diverging arm stops early and its trajectory says so (``diverged``, ``message``).
+    ``residual`` (N, n) N m, held over the whole episode, is added to the law's torque, through
+    ``residual_filter`` if given (one of the controller's filters).
     """
-    loop = ClosedLoop(scenarios, controller, observer, threads=threads)
+    loop = ClosedLoop(scenarios, controller, observer, threads=threads, residual_filter=residual_filter)
     steps = {s.sim.n_steps for s in scenarios}
     if len(steps) != 1:
         raise ValueError("simulate_batch needs scenarios of one duration")
@@ -1011,11 +1056,15 @@ def simulate_batch(
         noise = np.stack([np.random.default_rng(sd).standard_normal((n_steps, loop.n)) * s.angle_noise_std
                           for sd, s in zip(seeds, scenarios)])
     t0 = time.perf_counter()
-    rec, nrec, status = loop.advance(n_steps, noise=noise, record_samples=scenarios[0].sim.n_samples)
+    rec, nrec, status = loop.advance(n_steps, residual=residual, noise=noise, record_samples=scenarios[0].sim.n_samples)
     wall = time.perf_counter() - t0
     name = loop.controller.name
-    return [_trajectory(sc, name, loop.dt, rec[i], int(nrec[i]), status[i], wall / len(scenarios))
-            for i, sc in enumerate(scenarios)]
+    trajs = [_trajectory(sc, name, loop.dt, rec[i], int(nrec[i]), status[i], wall / len(scenarios))
+             for i, sc in enumerate(scenarios)]
+    if loop.residual_filter is not None:
+        for tr in trajs:
+            tr.residual_filter = loop.residual_filter.name
+    return trajs
 
 
 def simulate(

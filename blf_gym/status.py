@@ -9,12 +9,14 @@ from __future__ import annotations
 __all__ = ["STATUS_COLUMNS", "LAST_COLUMNS"]
 
 STATUS_COLUMNS = ("steps", "diverged", "violating_steps", "first_violating_step", "saturated_steps",
-                  "violating_samples")
+                  "violating_samples", "filter_breaches", "assumption_failures")
 """Per-arm integer status of one kernel call: steps taken, divergence code (0, 1 non-finite or
 beyond the limit, 2 numerically unstable), violating integration steps, the first one (global
-index, -1 if none), steps with a saturated torque, violating 1 ms samples."""
-ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES = (
-    STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
+index, -1 if none), steps with a saturated torque, violating 1 ms samples; with a residual filter,
+the integration steps where its condition did not hold and where an assumption of its guarantee
+failed (its ``breach`` and ``assumptions`` monitors, blf_gym.blocks.ResidualFilter)."""
+(ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_FILTER_BREACHES,
+ ST_ASSUMPTION_FAILURES) = (STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
 N_STATUS = len(STATUS_COLUMNS)
 
 LAST_COLUMNS = ("u", "u_law", "saturated", "x3", "x3_hat")
