@@ -8,11 +8,12 @@ a budget beta(m) that shrinks to 0 as the smallest normalized margin m to the bo
 
 * m_i = (k_a - z1_i) / k_a when z1_i >= 0, else (k_b + z1_i) / k_b (1 on the reference, 0 on the
   bound), from the measured error; m = min_i m_i;
-* beta(m) = beta_max * clip((m - m0) / (m1 - m0), 0, 1);
+* beta(m) = gamma(m) * max(beta_max, |r|^2 / gain_max), gamma(m) = clip((m - m0) / (m1 - m0), 0, 1): the
+  floor |r|^2 / gain_max bounds the filter's own feedback gain (see gain_max);
 * r is first clipped to the actuator box (u_law + r within +-u_max; untouched when already inside),
   then scaled: r_f = theta r with theta = min(gamma, beta / (z2_hat^T r)) when z2_hat^T r > 0, else
-  gamma, where gamma(m) = beta(m) / beta_max is the same ramp: the size of r_f shrinks to 0 at m0 too,
-  so the term the estimate cannot see, (x2 - x2_hat)^T r_f, vanishes there as well;
+  gamma: the size of r_f shrinks to 0 at m0 too, so the term the estimate cannot see,
+  (x2 - x2_hat)^T r_f, vanishes there as well;
 * r_f = 0 while u_law itself saturates.
 
 It publishes ``theta`` and ``beta`` and two monitors the kernel counts per integration step:
@@ -48,6 +49,11 @@ class BarrierFilterParams:
     """Normalized margin at and below which the budget is 0: the residual may then only lower V2."""
     m1: float = field(default=0.5, metadata={"unit": "-"})
     """Normalized margin at and above which the budget is beta_max (m0 < m1 <= 1)."""
+    gain_max: float = field(default=5.0, metadata={"unit": "N m s/rad"})
+    """The budget is at least |r|^2 / gain_max (times the ramp), which bounds the filter's own feedback
+    gain |d r_f / d z2_hat| by gain_max: a third of the law's smallest K2, so the filtered loop stays
+    integrable at h = 0.1 ms (an exact projection onto z2_hat^T r <= beta_max has a gain of
+    |r|^2 / beta_max, which destabilises ODE3 for an 8 N m residual)."""
     e2_max: float = field(default=2.0, metadata={"unit": "rad/s"})
     """Assumption monitor: the observer's velocity error |x2_hat - qd| stays below this."""
     noise_fraction: float = field(default=0.1, metadata={"unit": "-"})
@@ -55,7 +61,7 @@ class BarrierFilterParams:
 
     def __post_init__(self) -> None:
         o = "BarrierFilterParams"
-        for name in ("beta_max", "m0", "m1", "e2_max", "noise_fraction"):
+        for name in ("beta_max", "m0", "m1", "gain_max", "e2_max", "noise_fraction"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"{o}.{name} must be a finite number, got {v!r}")
@@ -64,13 +70,15 @@ class BarrierFilterParams:
             raise ValueError(f"{o}.beta_max must be >= 0 N m rad/s, got {self.beta_max!r}")
         if not (0.0 <= self.m0 < self.m1 <= 1.0):
             raise ValueError(f"{o}: margins must satisfy 0 <= m0 < m1 <= 1, got m0 = {self.m0!r}, m1 = {self.m1!r}")
+        if self.gain_max <= 0:
+            raise ValueError(f"{o}.gain_max must be > 0 N m s/rad, got {self.gain_max!r}")
         if self.e2_max <= 0 or not (0.0 < self.noise_fraction < 1.0):
             raise ValueError(f"{o}: e2_max must be > 0 rad/s and noise_fraction in (0, 1), got {self.e2_max!r}, "
                              f"{self.noise_fraction!r}")
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1, e2_max, noise_fraction,
+def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1, gain_max, e2_max, noise_fraction,
                   barrier_clip, y, q_true, qd_true, q_d, x2_hat, r_f, theta, beta, breach, assumptions):
     """The filter's ``apply`` over named signals (see the module docstring)."""
     n = residual.shape[0]
@@ -84,8 +92,8 @@ def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1
         if mi < m:
             m = mi
     ramp = min(max((m - m0) / (m1 - m0), 0.0), 1.0)
-    b = beta_max * ramp
     s = 0.0
+    r2 = 0.0
     for i in range(n):
         v = u_law[i] + residual[i]
         if v > u_max:
@@ -96,13 +104,16 @@ def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1
             rc = residual[i]  # inside the box: untouched, so the inactive filter is the identity
         r_f[i] = rc
         s += z2_hat[i] * rc
+        r2 += rc * rc
+    b = ramp * max(beta_max, r2 / gain_max)
     # the taper: the size of r_f also goes to 0 with the margin, so that the term the estimate cannot
     # see, (z2 - z2_hat)^T r_f = (x2 - x2_hat)^T r_f, vanishes at m0 too
+    big = b / ramp if ramp > 0.0 else 0.0  # max(beta_max, |r|^2 / gain_max)
     th = ramp
     if saturated:
         th = 0.0
-    elif s > b and b / s < th:
-        th = b / s
+    elif ramp > 0.0 and s > big:
+        th = b / s  # = ramp * big / s < ramp: the condition is met with equality
     if th < 1.0:
         for i in range(n):
             r_f[i] = th * r_f[i]
