@@ -155,6 +155,27 @@ class _ZeroResidual:
         return np.zeros((obs.shape[0], self.n), dtype=np.float32), None
 
 
+def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
+    """An agent's metadata with its env's residual filter replaced: ``name`` (e.g. "barrier"), or
+    "none" for no filter. The agent's name says so (``+barrier``, ``-filter``); the env kwargs, and
+    so the results' provenance, record it."""
+    from blf_gym.controller import make_controller
+
+    if name != "none" and name not in make_controller("proposed").filters:
+        raise ValueError(f"--residual-filter must be 'none' or one of {sorted(make_controller('proposed').filters)}, "
+                         f"got {name!r}")
+    meta = json.loads(json.dumps(meta, default=str))
+    kw = meta["env_kwargs"]
+    had = kw.get("residual_filter")
+    kw["residual_filter"] = None if name == "none" else name
+    base = meta.get("name", "agent")
+    if name == "none":
+        meta["name"] = base + ("-filter" if had else "")
+    elif had != name:
+        meta["name"] = f"{base}+{name}"
+    return meta
+
+
 def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = None,
                   threads: int | None = None):
     """The proposed law's trajectories on the same episodes and noise as a policy's.
@@ -182,6 +203,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
                    help="trained agents: blf-train run folders or their model zips (default: the shipped "
                         "ones in agents/pretrained; none with an empty list)")
+    p.add_argument("--residual-filter", default=None, metavar="NAME",
+                   help="run every agent through this residual filter of the proposed law (barrier), its name "
+                        "gaining +NAME, or 'none' to run every agent without one (default: each agent's own, "
+                        "from its metadata)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
     p.add_argument("--suite", nargs="+", default=list(PROTOCOL_SEEDS), choices=SUITES, metavar="SUITE",
@@ -338,6 +363,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
                        else [Path(a) for a in args.agents])
         agents = [(p, *load_agent(p)) for p in agent_paths]
+        if args.residual_filter is not None:
+            agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
         if not args.controllers and not agents:
             raise ValueError("nothing to evaluate: give --controllers and/or --agents")
     except ValueError as exc:
@@ -380,7 +407,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         # env set-up (control period, noise draws) for agents
         key = (label, "inner" if meta is None else json.dumps(
             {k: v for k, v in meta["env_kwargs"].items() if k not in ("residual_scale", "reward_weights",
-                                                                     "privileged")}, sort_keys=True, default=str))
+                                                                     "privileged", "residual_filter")},
+            sort_keys=True, default=str))
         if key not in law_cache:
             law_cache[key] = law_reference(scs, meta, args.threads)
         return law_cache[key]

@@ -1,7 +1,8 @@
 """The closed loop as declared blocks connected by named signals (docs/extending.md).
 
 Three kinds of block make the loop: the plant (:data:`PLANT`, built in), an :class:`Observer` and
-a :class:`Controller`. Each is declared with
+a :class:`Controller` (which may ship :class:`ResidualFilter` blocks for a learned residual). Each
+is declared with
 
 * its own state size, as named parts (``states={"x1_hat": "n", "x2_hat": "n"}``; a size is an
   ``int`` or ``"n"``, ``"2n"``, ... for a multiple of the number of joints);
@@ -20,7 +21,9 @@ Signals a function may read (n joints; "scalar" means a float)::
 
     t                         scalar   time, s
     y                         (n,)     measured joint angles, rad (true angles + noise)
-    qd_true                   (n,)     true joint velocities, rad/s (a full-state law; results say so)
+    qd_true, q_true           (n,)     true joint velocities, rad/s, and angles, rad (a full-state law;
+                                       results say so; filters' monitors read them)
+    u_max                     scalar   the actuator's torque limit, N m
     q_d, qd_d, qdd_d          (n,)     joint reference and its derivatives, rad, rad/s, rad/s^2
     k_a, k_a_dot, k_a_ddot    scalar   upper error bound and its rates, rad, rad/s, rad/s^2
     k_b, k_b_dot, k_b_ddot    scalar   lower error bound (the error stays above -k_b) and rates
@@ -30,6 +33,8 @@ Signals a function may read (n joints; "scalar" means a float)::
     <controller outputs>      (size,)  after Controller.output: u_law and the law's extra outputs
     u                         (n,)     torque commanded to the actuators (law + residual, after the
                                        limit, before the dead-zone); after Controller.output
+    residual                  (n,)     the raw residual, N m: ResidualFilter.apply only
+    <filter outputs>          (size,)  after ResidualFilter.apply: r_f and its other outputs
     <own parameter fields>    (len,) or scalar, from the block's parameter dataclass
     <own state names>, state  the block's own state (its parts, or all of it)
 
@@ -46,7 +51,8 @@ Nominal-model operators at the measured angles (compiled; call them from a plug-
     gravity(nominal, out)            out = G(y)
 
 Order inside one stage evaluation (every ODE3 stage): plant measurement y, reference and bounds,
-the nominal model at y, ``Controller.output``, the actuator (``u = sat(u_law + residual)``), the
+the nominal model at y, ``Controller.output``, the residual filter if any, the actuator
+(``u = sat(u_law + r_f)``, r_f the residual or its filtered form), the
 plant's acceleration, ``Observer.rhs``, ``Controller.update``. A bad plug-in is refused with a
 ``ValueError`` naming it and the problem when it is built or first connected (:func:`connect`).
 """

@@ -15,7 +15,7 @@ from numba import njit
 from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
 from typing import NamedTuple
 
-from .blocks import NO_CONTROLLER, Controller, Observer
+from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .controller import available_controllers, available_observers, make_controller, make_observer
 from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
                      _R_VIOLATED, RewardWeights, step_outputs)
@@ -374,9 +374,9 @@ class EnvCore:
                 raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
                                  f"accepted: {names}")
         threads = check_int(o, "threads", threads, lo=1, none_ok=True)
-        if not (residual_filter is None or isinstance(residual_filter, str)):
-            raise ValueError(f"{o} residual_filter must be None or the name of a filter shipped with the law "
-                             f"(e.g. 'barrier'), got {residual_filter!r}")
+        if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
+            raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
+                             f"(e.g. 'barrier') or a blf_gym.blocks.ResidualFilter, got {residual_filter!r}")
         base, suite = resolve_scenario(scenario)
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
@@ -426,7 +426,7 @@ class EnvCore:
         w = reward_weights
         self._wvec = reward_weights.pack(self.terminate_on_violation)
         self.n = self.base.arm.n_links
-        self.residual_filter = residual_filter
+        self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
         if residual_filter is not None and not self.residual:
             # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
             inner, plain = make_controller("proposed"), True

@@ -1,0 +1,65 @@
+"""The barrier filter through the env, the commands and the agent metadata (docs/model.md section 11)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import blf_gym  # noqa: F401
+from agents.evaluate import with_filter
+from agents.train import ENV_KEYS
+
+
+def test_the_residual_env_filters_and_reports_it():
+    env = gym.make("PlanarBLFResidual-v0", residual_filter="barrier", duration=0.5)
+    env.reset(seed=0)
+    for _ in range(50):
+        obs, r, term, trunc, info = env.step(np.ones(3, dtype=np.float32))
+    fo = info["filter_outputs"]
+    assert set(fo) == {"r_f", "theta", "beta", "breach", "assumptions"}
+    assert 0.0 <= fo["theta"][0] <= 1.0 and fo["breach"][0] == 0.0
+    # the torque applied is the law's plus the filtered residual, never more than asked for
+    assert np.all(np.abs(fo["r_f"]) <= 2.0 + 1e-12)
+    np.testing.assert_allclose(info["u"], np.clip(info["u_law"] + fo["r_f"], -150, 150), rtol=0, atol=1e-12)
+    assert trunc and info["episode_metrics"]["filter_breaches"] == 0
+    assert isinstance(info["episode_metrics"]["assumption_failures"], int)
+
+
+def test_a_law_without_a_filter_refuses_the_option():
+    for controller in ("bc", "lesobc"):
+        with pytest.raises(ValueError, match="ships no residual filter"):
+            gym.make("PlanarBLFResidual-v0", controller=controller, residual_filter="barrier")
+    with pytest.raises(ValueError, match="residual_filter"):
+        gym.make("PlanarBLFResidual-v0", residual_filter="nonexistent")
+    with pytest.raises(ValueError, match="residual_filter"):
+        gym.make("PlanarBLFResidual-v0", residual_filter=3)
+
+
+def test_in_plain_mode_it_is_a_safety_filter_around_any_policy():
+    # a policy that commands no torque at all: the arm falls under gravity and leaves the bounds
+    # within a few steps; through the filter the proposed law takes over as the margin shrinks
+    kw = dict(duration=2.0, terminate_on_violation=False)
+    raw = gym.make("PlanarBLF-v0", **kw)
+    filt = gym.make("PlanarBLF-v0", residual_filter="barrier", **kw)
+    costs = {}
+    for name, env in (("raw", raw), ("filtered", filt)):
+        env.reset(seed=0)
+        total = 0.0
+        for _ in range(200):
+            _, _, _, _, info = env.step(np.zeros(3, dtype=np.float32))
+            total += info["cost"]
+        costs[name] = total
+    assert costs["raw"] > 100 and costs["filtered"] == 0, costs
+
+
+def test_the_agent_metadata_records_the_filter_and_blf_eval_can_replace_it():
+    assert "residual_filter" in ENV_KEYS  # a config's env key, recorded in metadata["env_kwargs"]
+    meta = {"name": "ppo_residual", "mode": "residual", "env_kwargs": {"controller": "proposed"}}
+    m = with_filter(meta, "barrier")
+    assert m["env_kwargs"]["residual_filter"] == "barrier" and m["name"] == "ppo_residual+barrier"
+    assert meta["env_kwargs"] == {"controller": "proposed"}  # the original is untouched
+    m2 = with_filter(m, "none")
+    assert m2["env_kwargs"]["residual_filter"] is None and m2["name"] == "ppo_residual+barrier-filter"
+    with pytest.raises(ValueError, match="residual-filter"):
+        with_filter(meta, "nope")
