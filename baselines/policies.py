@@ -165,8 +165,9 @@ class BaselinePolicy:
                 qd = np.zeros(_N)
             nominal_model_into(y, self._nominal, self._nom, self._work)
             c = self._conn
-            c.ctrl_output(0.0, y, qd, self._xhat[i], self._none, ref, bnd, self._nom, self._k0, self.inner.gains,
-                          self._none, self._cout, self._none, self._none, self._work)
+            c.ctrl_output(0.0, y, y, qd, self._xhat[i], self._none, ref, bnd, self._nom, self._k0, self.inner.gains,
+                          self._none, self._none, self._cout, self._none, self._none, self.max_torque, self._none,
+                          self._none, self._work)
             u[i] = np.clip(self._cout[:_N], -self.max_torque, self.max_torque)
             self._y_prev[i] = y
             self._u_prev[i] = u[i]

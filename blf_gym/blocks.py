@@ -316,16 +316,26 @@ class _PluginBase:
     def owner(self) -> str:
         return f"{self.kind} {self.name!r}"
 
-    def state_size(self, n: int) -> int:
-        return sum(size_of(s, n, self.owner) for s in self.states.values())
-
-    def state_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+    def _layout(self, parts: Mapping[str, Any], n: int) -> dict[str, tuple[int, int]]:
+        """(offset, size) of each declared part, in order, for n joints."""
         out, o = {}, 0
-        for k, s in self.states.items():
+        for k, s in parts.items():
             m = size_of(s, n, self.owner)
             out[k] = (o, m)
             o += m
         return out
+
+    def state_size(self, n: int) -> int:
+        return sum(m for _, m in self._layout(self.states, n).values())
+
+    def state_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+        return self._layout(self.states, n)
+
+    def output_size(self, n: int) -> int:
+        return sum(m for _, m in self._layout(getattr(self, "outputs", {}), n).values())
+
+    def output_offsets(self, n: int) -> dict[str, tuple[int, int]]:
+        return self._layout(getattr(self, "outputs", {}), n)
 
 
 @dataclass(frozen=True, eq=False)
@@ -386,16 +396,6 @@ class Controller(_PluginBase):
             raise ValueError(f"{self.owner}: filter {spec!r} did not produce a blf_gym.blocks.ResidualFilter")
         return f
 
-    def output_size(self, n: int) -> int:
-        return sum(size_of(s, n, self.owner) for s in self.outputs.values())
-
-    def output_offsets(self, n: int) -> dict[str, tuple[int, int]]:
-        out, o = {}, 0
-        for k, s in self.outputs.items():
-            m = size_of(s, n, self.owner)
-            out[k] = (o, m)
-            o += m
-        return out
 
     def initial(self, y0: np.ndarray) -> np.ndarray:
         n = y0.shape[0]
@@ -484,16 +484,6 @@ class ResidualFilter(_PluginBase):
         object.__setattr__(self, "outputs", outs)
         object.__setattr__(self, "_apply_params", _fn_params(f"{o}.apply", self.apply))
 
-    def output_size(self, n: int) -> int:
-        return sum(size_of(s, n, self.owner) for s in self.outputs.values())
-
-    def output_offsets(self, n: int) -> dict[str, tuple[int, int]]:
-        out, o = {}, 0
-        for k, s in self.outputs.items():
-            m = size_of(s, n, self.owner)
-            out[k] = (o, m)
-            o += m
-        return out
 
 
 def _zero_output(u_law):

@@ -293,6 +293,9 @@ BAD_KWARGS = {
         | st.lists(STRINGS.filter(lambda s: s not in ("u_law", "z2_hat")), min_size=1, max_size=2)
         | st.just(["u_law", "u_law"]) | st.lists(st.integers(), min_size=1, max_size=2),
         st.just("observation_extras")),
+    "residual_filter": st.tuples(
+        STRINGS.filter(lambda s: s != "barrier") | st.integers() | st.floats() | BOOLS | CONTAINERS,
+        st.just("residual_filter")),
     "threads": st.tuples(bad_int(1, none_ok=True), st.just("threads")),
     "render_mode": st.tuples(STRINGS.filter(lambda s: s not in ("rgb_array", "human")) | st.integers()
                              | BOOLS, st.just("render_mode")),

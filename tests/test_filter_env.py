@@ -63,3 +63,23 @@ def test_the_agent_metadata_records_the_filter_and_blf_eval_can_replace_it():
     assert m2["env_kwargs"]["residual_filter"] is None and m2["name"] == "ppo_residual+barrier-filter"
     with pytest.raises(ValueError, match="residual-filter"):
         with_filter(meta, "nope")
+
+
+def test_the_adversarial_list_is_the_documented_one():
+    from agents.adversarial import sequences
+
+    seqs = sequences(3000)
+    assert len(seqs) == 31
+    sat = [k for k in seqs if k.startswith("sat")]
+    assert len(sat) == 8 and len({tuple(seqs[k][0]) for k in sat}) == 8
+    for k in sat:
+        assert np.all(np.abs(seqs[k]) == 1.0) and np.all(seqs[k] == seqs[k][0])
+    # bang-bang: all joints switch sign every 10, 20 and 50 ms (1, 2 and 5 agent steps of 10 ms)
+    for period, steps in ((10, 1), (20, 2), (50, 5)):
+        col = seqs[f"bang{period}"][:, 0]
+        switches = np.flatnonzero(np.diff(col) != 0) + 1
+        assert np.all(np.diff(switches) == steps) and switches[0] == steps
+    rnd = [k for k in seqs if k.startswith("rand")]
+    assert len(rnd) == 20 and all(np.all(np.abs(seqs[k]) <= 1.0) for k in rnd)
+    np.testing.assert_array_equal(seqs["rand03"], sequences(3000)["rand03"])  # seeded
+    assert not np.array_equal(seqs["rand03"], seqs["rand04"])
