@@ -171,7 +171,9 @@ def plot_tradeoff(res: dict[str, Any], path: Path) -> None:
         ax.set_xlabel("certificate_broken (share of episodes)")
         ax.set_ylabel("score_vs_law (law RMSE / agent RMSE)")
     axes[0][0].legend(fontsize=8, loc="lower left")
-    fig.suptitle(f"{Path(res['agent']).parent.name or res['agent']}: the filter applied without retraining")
+    agent = Path(res["agent"])
+    name = agent.parent.name if agent.suffix == ".zip" else agent.name
+    fig.suptitle(f"{name}: the barrier filter applied without retraining, at several margins m0")
     fig.tight_layout()
     with atomic_path(path, ".png") as tmp:
         fig.savefig(tmp, dpi=110)

@@ -443,6 +443,8 @@ class EnvCore:
         self._filter_slices = [(name, slice(N_LAST * self.n + self.loop.connection.n_out + off,
                                             N_LAST * self.n + self.loop.connection.n_out + off + m))
                                for name, (off, m) in self.loop.connection.fout_offsets.items()]
+        n = self.n
+        self._last_slices = tuple(slice(c * n, (c + 1) * n) for c in (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT))
         # the law's outputs besides u_law (already info["u_law"]), for info["controller_outputs"]
         self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
                             for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
@@ -677,24 +679,26 @@ class EnvCore:
                 elif truncated[i]:
                     trunc_reason[i] = "time_limit"
         last = self.loop.last.copy()  # the info entries below are views of this fresh copy
-        self.last_x3[:] = last[:, LAST_X3 * n : (LAST_X3 + 1) * n]
+        sl = self._last_slices
+        x3 = last[:, sl[2]]
+        self.last_x3[:] = x3
         info: dict[str, Any] = {
             "cost": res[_R_VIOLATED],
             "violating_samples": status[:, ST_VIOL_SAMPLES],
-            "u": last[:, LAST_U * n : (LAST_U + 1) * n],
-            "u_law": last[:, LAST_ULAW * n : (LAST_ULAW + 1) * n],
+            "u": last[:, sl[0]],
+            "u_law": last[:, sl[1]],
             "u_residual": residual,
             "saturated": status[:, ST_SAT_STEPS] > 0,
-            "x3": last[:, LAST_X3 * n : (LAST_X3 + 1) * n],
-            "x3_hat": last[:, LAST_X3HAT * n : (LAST_X3HAT + 1) * n],
-            "controller_outputs": {name: last[:, sl] for name, sl in self._out_slices},
-            **({"filter_outputs": {name: last[:, sl] for name, sl in self._filter_slices}}
-               if self._filter_slices else {}),
+            "x3": x3,
+            "x3_hat": last[:, sl[3]],
+            "controller_outputs": {name: last[:, s] for name, s in self._out_slices},
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
             "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
                             "torque": res[_R_TORQUE], "violation": res[_R_PENALTY]},
         }
+        if self._filter_slices:
+            info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}
         if flags & 2:
             info["diverged_message"] = np.array(
                 [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps, self.controller.name)

@@ -947,7 +947,7 @@ class ClosedLoop:
             record_samples = n_steps // self.steps_per_sample + 1
         rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
         nrec = np.zeros(N, dtype=np.int64)
-        status = np.zeros((N, N_STATUS), dtype=np.int64)
+        status = np.empty((N, N_STATUS), dtype=np.int64)  # every column is set by the kernel
         sums = np.empty((N, SUM_E2_JOINT + n))
         b = self._batch
         if self.threads <= 1 or N == 1:
