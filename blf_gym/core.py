@@ -6,15 +6,13 @@ compiled closed loop, observations, rewards and info. There is no other copy of 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
-from typing import Any, Mapping, Sequence
+from dataclasses import fields, replace
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
 
 from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
-from typing import NamedTuple
-
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .controller import available_controllers, available_observers, make_controller, make_observer
 from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
@@ -30,10 +28,8 @@ from .simulate import (
     ST_SAT_STEPS,
     ST_VIOL_SAMPLES,
     ST_VIOL_STEPS,
-    SUM_EN2,
     SUM_E2_JOINT,
     SUM_SAMPLES,
-    SUM_UN2,
     LAST_U,
     LAST_X3,
     LAST_X3HAT,
@@ -423,7 +419,6 @@ class EnvCore:
             reward_weights = RewardWeights(**dict(reward_weights))
         reward_weights.check_episode(self.max_episode_steps)
         self.weights = reward_weights
-        w = reward_weights
         self._wvec = reward_weights.pack(self.terminate_on_violation)
         self.n = self.base.arm.n_links
         self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
@@ -656,7 +651,6 @@ class EnvCore:
                     self._chunks[i].append(rec[i, : nrec[i]].copy())
         self.steps += 1
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
-        w = self.weights
         res = np.empty((8, N))
         t_end = self.loop.time
         if self.weights.law_baseline:
