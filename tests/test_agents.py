@@ -195,15 +195,21 @@ def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
 
     out = tmp_path / "run"
     cfg = str(_tiny(tmp_path, "sac"))
-    proc = subprocess.Popen([sys.executable, "-m", "agents.train", "--algo", "sac", "--timesteps", "1000000",
-                             "--config", cfg, "--out", str(out), "--no-progress"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    deadline = time.time() + 120
-    while time.time() < deadline and not list((out / "checkpoints").glob("step_*")):
-        time.sleep(0.5)
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=300)  # generous: CI machines can be heavily loaded
+    # the run's output goes to a file, not a pipe nobody reads while it trains (a full pipe would
+    # block the run before its first checkpoint)
+    log = tmp_path / "stderr.txt"
+    with open(log, "w") as errf:
+        proc = subprocess.Popen([sys.executable, "-m", "agents.train", "--algo", "sac", "--timesteps", "1000000",
+                                 "--config", cfg, "--out", str(out), "--no-progress"],
+                                stdout=subprocess.DEVNULL, stderr=errf, text=True)
+        deadline = time.time() + 300  # generous: a cold cache compiles the kernels first
+        while time.time() < deadline and proc.poll() is None and not list((out / "checkpoints").glob("step_*")):
+            time.sleep(0.5)
+        assert list((out / "checkpoints").glob("step_*")), f"no checkpoint within 300 s:\n{log.read_text()[-2000:]}"
+        time.sleep(1.0)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=300)  # generous: CI machines can be heavily loaded
+    err = log.read_text()
     assert "interrupted" in err
     meta = json.loads((out / "metadata.json").read_text())
     assert not meta["completed"]  # the model and metadata of an interrupted run are still written
