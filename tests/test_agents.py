@@ -199,16 +199,23 @@ def test_an_interrupted_run_resumes_from_its_last_checkpoint(tmp_path):
     # block the run before its first checkpoint)
     log = tmp_path / "stderr.txt"
     with open(log, "w") as errf:
+        # SIGINT at its default in the child: a shell running the suite in the background ignores it,
+        # and a Python started with SIGINT ignored never raises KeyboardInterrupt (a user's Ctrl-C does)
         proc = subprocess.Popen([sys.executable, "-m", "agents.train", "--algo", "sac", "--timesteps", "1000000",
                                  "--config", cfg, "--out", str(out), "--no-progress"],
-                                stdout=subprocess.DEVNULL, stderr=errf, text=True)
-        deadline = time.time() + 300  # generous: a cold cache compiles the kernels first
-        while time.time() < deadline and proc.poll() is None and not list((out / "checkpoints").glob("step_*")):
-            time.sleep(0.5)
-        assert list((out / "checkpoints").glob("step_*")), f"no checkpoint within 300 s:\n{log.read_text()[-2000:]}"
-        time.sleep(1.0)
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=300)  # generous: CI machines can be heavily loaded
+                                stdout=subprocess.DEVNULL, stderr=errf, text=True,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            deadline = time.time() + 300  # generous: a cold cache compiles the kernels first
+            while time.time() < deadline and proc.poll() is None and not list((out / "checkpoints").glob("step_*")):
+                time.sleep(0.5)
+            assert list((out / "checkpoints").glob("step_*")), f"no checkpoint within 300 s:\n{log.read_text()[-2000:]}"
+            time.sleep(1.0)
+            proc.send_signal(signal.SIGINT)
+            proc.wait(timeout=300)  # generous: CI machines can be heavily loaded
+        finally:
+            if proc.poll() is None:
+                proc.kill()
     err = log.read_text()
     assert "interrupted" in err
     meta = json.loads((out / "metadata.json").read_text())
