@@ -61,7 +61,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import importlib.util
 import inspect
 import math
 import os
@@ -542,7 +541,6 @@ class Connection:
         return self.obs_offsets.get(name)
 
 
-_ROLE_OWNER = {"ctrl_out": "output", "filter": "apply", "obs": "rhs", "ctrl_upd": "update"}
 
 
 def _expr(role: str, name: str, ctrl: Controller, obs: Observer, filt: "ResidualFilter | None", n: int,
