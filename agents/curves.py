@@ -47,7 +47,7 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         raise ValueError("the runs' curves were scored on different scenarios (curve_suite_seeds or "
                          f"duration differ: {sorted(scoring, key=str)}); plot them separately")
     if law is None:
-        from .tune import law_levels
+        from .sweep import law_levels
 
         first = curves[0][1]
         law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))

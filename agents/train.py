@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
 import time
 from pathlib import Path
@@ -36,7 +37,7 @@ import numpy as np
 
 from blf_gym.io import atomic_write_json
 
-__all__ = ["main", "load_config", "train"]
+__all__ = ["main", "load_config", "validate_config", "train"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 MODES = ("plain", "residual")
@@ -55,17 +56,24 @@ def load_config(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise ValueError(f"config not found: {path}")
     cfg = yaml.safe_load(path.read_text()) or {}
+    validate_config(cfg, str(path))
+    return cfg
+
+
+def validate_config(cfg: Any, where: str) -> None:
+    """Check a config mapping's keys and counts; ValueError naming ``where`` and the key."""
+    if not isinstance(cfg, dict):
+        raise ValueError(f"{where}: a config is a mapping of {list(CONFIG_KEYS)}")
     unknown = sorted(set(cfg) - set(CONFIG_KEYS))
     if unknown:
-        raise ValueError(f"{path}: unknown config key(s) {unknown}; accepted: {list(CONFIG_KEYS)}")
+        raise ValueError(f"{where}: unknown config key(s) {unknown}; accepted: {list(CONFIG_KEYS)}")
     env_unknown = sorted(set(cfg.get("env", {}) or {}) - set(ENV_KEYS))
     if env_unknown:
-        raise ValueError(f"{path}: unknown env key(s) {env_unknown}; accepted: {list(ENV_KEYS)}")
+        raise ValueError(f"{where}: unknown env key(s) {env_unknown}; accepted: {list(ENV_KEYS)}")
     for key in ("n_envs", "eval_freq", "checkpoint_freq", "curve_suite_seeds"):
         v = cfg.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ValueError(f"{path}: {key} must be an integer >= 1, got {v!r}")
-    return cfg
+            raise ValueError(f"{where}: {key} must be an integer >= 1, got {v!r}")
 
 
 def _make_progress_callback(total: int, start: int, enabled: bool):
@@ -433,6 +441,8 @@ def train(
         interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
               f"--out {out}", file=sys.stderr)
+    if interrupted:  # a second SIGTERM (a scheduler's, a dying parent's) must not cut the final save short
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
     save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
     norm = model.get_vec_normalize_env()
@@ -483,7 +493,6 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     import shlex
-    import signal
 
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)

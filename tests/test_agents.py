@@ -283,47 +283,6 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
     assert not (tmp_path / "e.png").exists()
 
 
-def test_tune_ranks_candidates_against_the_law_and_resumes(tmp_path, capsys):
-    from agents.tune import law_levels, main as tune_main
-
-    cands = []
-    for name, scale in (("small", 0.5), ("large", 4.0)):
-        p = tmp_path / f"{name}.yaml"
-        p.write_text(TINY.format(normalize="true", hyper=HYPER["ppo"]).replace("residual_scale: 2.0",
-                                                                               f"residual_scale: {scale}")
-                     + "curve_suite_seeds: 1\n")
-        cands.append(str(p))
-    out = tmp_path / "tune"
-    assert tune_main([*cands, "--timesteps", "128", "--out", str(out), "--jobs", "2"]) == 0
-    res = json.loads((out / "tune.json").read_text())
-    assert {r["run"] for r in res["rows"]} == {"small", "large"}
-    law = law_levels(1, 0.2)
-    for r in res["rows"]:
-        curve = json.loads((out / r["run"] / "eval" / "curve.json").read_text())
-        for g in ("paper-0.1hz", "paper-0.5hz", "randomized"):
-            want = np.asarray(curve["points"][-1][g]["rmse_deg"]) / np.asarray(law[g])
-            np.testing.assert_allclose(r[g]["ratio"], want, rtol=1e-12)
-        assert r["worst_ratio"] == pytest.approx(max(max(r[g]["ratio"]) for g in res["law"]))
-        # the ranking score is score_vs_law: 1 / the geometric mean of the nine RMSE ratios
-        ratios = [v for g in ("paper-0.1hz", "paper-0.5hz", "randomized") for v in r[g]["ratio"]]
-        assert r["score_vs_law"] == pytest.approx(1.0 / np.exp(np.mean(np.log(ratios))), rel=1e-12)
-    assert "| small |" in (out / "tune.md").read_text()
-    from agents.tune import rank
-
-    fake = [{"score_vs_law": 2.0, "violations": 3}, {"score_vs_law": 1.1, "violations": 0},
-            {"score_vs_law": 1.5, "violations": 0}]
-    assert [r["score_vs_law"] for r in rank(fake)] == [1.5, 1.1, 2.0]  # a violation always loses
-    capsys.readouterr()
-    # a second call trains nothing and rebuilds the same table
-    assert tune_main([*cands, "--timesteps", "128", "--out", str(out)]) == 0
-    assert "2 run(s) done, 0 to train" in capsys.readouterr().err
-    assert tune_main([str(tmp_path / "missing.yaml"), "--out", str(out)]) == 2
-    other = tmp_path / "other.yaml"
-    other.write_text(Path(cands[0]).read_text().replace("curve_suite_seeds: 1", "curve_suite_seeds: 2"))
-    assert tune_main([cands[0], str(other), "--out", str(out)]) == 2
-    assert "share curve_suite_seeds" in capsys.readouterr().err
-
-
 def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
     from agents.report import main as report_main, pool_seeds
     from blf_gym.metrics import write_results

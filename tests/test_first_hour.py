@@ -192,14 +192,15 @@ def test_the_compile_notice_names_numba_s_real_cache_and_is_printed_once(tmp_pat
 # ---- 3. help texts ----------------------------------------------------------------------------
 
 def _parsers() -> dict[str, argparse.ArgumentParser]:
-    from agents import curves, evaluate, train, tune
+    from agents import curves, evaluate, sweep, train, tune
     from baselines import reproduce
 
     return {"blf-train": train._parser(), "blf-eval": evaluate._parser(), "blf-tune": tune._parser(),
-            "blf-reproduce": reproduce._parser(), "blf-curves": curves._parser()}
+            "blf-reproduce": reproduce._parser(), "blf-curves": curves._parser(),
+            "blf-sweep": sweep._parser()}
 
 
-@pytest.mark.parametrize("name", ["blf-train", "blf-eval", "blf-tune", "blf-reproduce", "blf-curves"])
+@pytest.mark.parametrize("name", ["blf-train", "blf-eval", "blf-tune", "blf-reproduce", "blf-curves", "blf-sweep"])
 def test_every_option_has_help_and_its_default_once(name):
     parser = _parsers()[name]
     text = parser.format_help()
