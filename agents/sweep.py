@@ -513,9 +513,14 @@ def _trainable():
                     self.queue.append(p)
                     self.reported = p["timesteps"]
 
+        def _alive(self) -> bool:
+            return self.proc is not None and self.proc.poll() is None
+
         def step(self):
             self._refresh()
-            while not self.queue and self.proc is not None and self.proc.poll() is None:
+            # the point at the budget is held until blf-train has saved the model and exited:
+            # reaching max_t makes Ray stop the trial, and the run must be complete by then
+            while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]):
                 time.sleep(self.poll_s)
                 self._refresh()
             exited = self.proc is None or self.proc.poll() is not None

@@ -441,17 +441,25 @@ def train(
         interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
               f"--out {out}", file=sys.stderr)
-    if interrupted:  # a second SIGTERM (a scheduler's, a dying parent's) must not cut the final save short
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
-    save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
-    norm = model.get_vec_normalize_env()
-    if norm is not None:
-        with atomic_path(out / "vecnormalize.pkl") as tmp:
-            norm.save(str(tmp))
-    with atomic_path(out / "model.zip") as tmp:
-        model.save(tmp)
-    record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
+    import threading
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    # a SIGTERM now (a scheduler's at the budget, a second one, a dying parent's) must not cut the
+    # final save short: it is ignored until the run is recorded
+    previous = signal.signal(signal.SIGTERM, signal.SIG_IGN) if main_thread else None
+    try:
+        # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
+        save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
+        norm = model.get_vec_normalize_env()
+        if norm is not None:
+            with atomic_path(out / "vecnormalize.pkl") as tmp:
+                norm.save(str(tmp))
+        with atomic_path(out / "model.zip") as tmp:
+            model.save(tmp)
+        record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
     venv.close()
     print(f"blf-train: wrote {out / 'model.zip'} and {out / 'metadata.json'} ({model.num_timesteps} steps)")
     return out
