@@ -13,4 +13,12 @@ def load_agent(path):
     return _load(path)
 
 
-__all__ = ["load_agent"]
+def load_pretrained(name, scenario=None, reward="score", **env_kwargs):
+    """(model, env) of a shipped agent, the env made with the kwargs it was trained with (see
+    :func:`agents.loading.load_pretrained`)."""
+    from .loading import load_pretrained as _load
+
+    return _load(name, scenario, reward, **env_kwargs)
+
+
+__all__ = ["load_agent", "load_pretrained"]

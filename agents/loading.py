@@ -18,7 +18,9 @@ import pickle
 from pathlib import Path
 from typing import Any
 
-__all__ = ["algorithm_class", "available_algorithms", "load_agent"]
+__all__ = ["algorithm_class", "available_algorithms", "load_agent", "load_pretrained", "pretrained_agents"]
+
+PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 
 
 def available_algorithms() -> list[str]:
@@ -101,3 +103,60 @@ def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
             raise ValueError(f"{stats}: statistics for observations of shape {obs_shape}, but the model in {path} "
                              f"takes {tuple(model.observation_space.shape)}")
     return model, meta, norm
+
+
+def pretrained_agents() -> list[str]:
+    """Names of the agents shipped in ``agents/pretrained/``."""
+    return sorted(p.name for p in PRETRAINED.iterdir() if (p / "model.zip").is_file())
+
+
+def load_pretrained(name: str | Path, scenario: str | None = None, reward: str = "score", **env_kwargs: Any):
+    """A shipped agent (or any blf-train run folder) and an env it can act in, as SB3 expects them.
+
+    Returns ``(model, env)``: the model loaded by :func:`load_agent`, and a one-arm SB3 ``VecEnv``
+    (``DummyVecEnv`` of ``gym.make`` with a ``Monitor``) built with the env kwargs the agent was
+    trained with (its residual scale, control period, observation and filter included), wrapped in
+    the agent's ``VecNormalize`` statistics (frozen: ``training=False``, rewards not normalized) when
+    it has them. So ``stable_baselines3.common.evaluation.evaluate_policy(model, env)`` runs the agent
+    exactly as ``blf-eval`` does.
+
+    ``scenario`` replaces the training scenario (e.g. ``"paper-0.1hz"``); ``env_kwargs`` replace
+    others. Episodes run their whole duration (``terminate_on_violation=False``), as in blf-eval.
+    ``reward="score"`` (default) gives the env's default reward, whose episode return is the
+    episode's log score_vs_law; ``reward="training"`` the reward the agent was trained with (an
+    agent whose metadata names none was trained before the default changed, with the shaped reward
+    of ``RewardWeights()``).
+    """
+    import gymnasium as gym
+    from stable_baselines3.common.monitor import Monitor
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    import blf_gym  # noqa: F401 - registers the ids
+
+    path = Path(name)
+    if not path.is_dir():
+        path = PRETRAINED / str(name)
+    if not path.is_dir():
+        raise ValueError(f"unknown pretrained agent {str(name)!r}; shipped: {pretrained_agents()} (or give a "
+                         "blf-train run folder)")
+    if reward not in ("score", "training"):
+        raise ValueError(f"reward must be 'score' or 'training', got {reward!r}")
+    model, meta, norm = load_agent(path)
+    kw = dict(meta["env_kwargs"])
+    kw.pop("threads", None)
+    if reward == "score":
+        kw.pop("reward_weights", None)
+    else:
+        kw.setdefault("reward_weights", {})
+    kw["terminate_on_violation"] = False
+    if scenario is not None:
+        kw["scenario"] = scenario
+    kw.update(env_kwargs)
+    env_id = meta.get("env_id") or ("PlanarBLFResidual-v0" if meta["mode"] == "residual" else "PlanarBLF-v0")
+    venv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kw))])
+    if norm is None:
+        return model, venv
+    norm.set_venv(venv)
+    norm.training = False
+    norm.norm_reward = False
+    return model, norm

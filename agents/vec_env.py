@@ -14,6 +14,7 @@ from __future__ import annotations
 from typing import Any, Iterable, Sequence
 
 import numpy as np
+from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from blf_gym.vector import PlanarBLFVectorEnv
@@ -38,7 +39,7 @@ class BLFVecEnv(VecEnv):
     """SB3 vectorized env of ``num_envs`` PlanarBLF arms; kwargs are PlanarBLFEnv's."""
 
     def __init__(self, num_envs: int, seed: int | None = None, **env_kwargs: Any) -> None:
-        self.venv = PlanarBLFVectorEnv(num_envs=num_envs, **env_kwargs)
+        self.venv = PlanarBLFVectorEnv(num_envs=num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **env_kwargs)
         super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
         self._seed = seed
         self._actions: np.ndarray | None = None

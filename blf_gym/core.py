@@ -16,7 +16,7 @@ from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .controller import available_controllers, available_observers, make_controller, make_observer
 from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
-                     _R_VIOLATED, RewardWeights, step_outputs)
+                     _R_VIOLATED, SCORE_REWARD, RewardWeights, score_step, step_outputs)
 from .params import DT_MIN, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
@@ -35,6 +35,7 @@ from .simulate import (
     LAST_X3HAT,
     LAST_ULAW,
     N_LAST,
+    CHANNELS,
     ClosedLoop,
     divergence_message,
 )
@@ -414,7 +415,7 @@ class EnvCore:
         self.privileged = bool(privileged)
         self.terminate_on_violation = bool(terminate_on_violation)
         if reward_weights is None:
-            reward_weights = RewardWeights()
+            reward_weights = SCORE_REWARD
         elif not isinstance(reward_weights, RewardWeights):
             reward_weights = RewardWeights(**dict(reward_weights))
         reward_weights.check_episode(self.max_episode_steps)
@@ -473,6 +474,12 @@ class EnvCore:
         self._noisy: list[int] = []
         self._obs64 = np.empty((N, self._base_dim))
         self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
+        # the score term: the law's cumulative e1^2 per 1 ms sample, and each arm's potential
+        self._score_w = float(self.weights.score)
+        self._law_cum = np.zeros((N, self.base.sim.n_samples if self._score_w > 0 else 0, n))
+        self._cum_cache: dict[Scenario, np.ndarray] = {}
+        self._phi = np.zeros(N)
+        self._score_term = np.zeros(N)
         self._threads = threads
 
     def _observer_offset(self, name: str) -> int:
@@ -562,7 +569,10 @@ class EnvCore:
         self.loop.set_scenarios(scs, which=list(idx))
         if self.weights.relative:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
+        if self._score_w > 0:
+            self._law_cum[list(idx)] = self.law_cumulative(scs)
         for i in idx:
+            self._phi[i] = 0.0
             self.steps[i] = 0
             self.last_x3[i] = 0.0
             self.done[i] = False
@@ -606,6 +616,40 @@ class EnvCore:
                     self._law_cache[sc] = (level[i].copy(), per[i].copy())
         return mean, steps
 
+    def law_cumulative(self, scenarios: Sequence[Scenario]) -> np.ndarray:
+        """The reference law alone on each scenario, without noise (as :meth:`law_level`): each
+        joint's running sum of e1^2 (rad^2) through every 1 ms sample of the episode,
+        (len(scenarios), samples, n), for the score term. A non-finite error counts as +inf."""
+        S = self._law_cum.shape[1]
+        out = np.empty((len(scenarios), S, self.n))
+        todo = []
+        for k, sc in enumerate(scenarios):
+            sc = replace(sc, angle_noise_std=0.0)
+            if sc in self._cum_cache:
+                out[k] = self._cum_cache[sc]
+            else:
+                todo.append((k, sc))
+        if todo:
+            ref = self.controller if self.residual else make_controller("proposed")
+            loop = ClosedLoop([sc for _, sc in todo], ref, self.observer, threads=self._threads)
+            sps, e1c = loop.steps_per_sample, CHANNELS.index("e1")
+            acc = np.zeros((len(todo), self.n))
+            rows = [k for k, _ in todo]
+            s0 = 0
+            while s0 < S:  # in chunks, so the record stays small for a batch of long episodes
+                m = min(1000, S - s0)
+                rec, _, _ = loop.advance(m * sps, record_samples=m)
+                e2 = rec[:, :m, e1c, :] ** 2
+                e2[~np.isfinite(e2)] = np.inf
+                seg = np.cumsum(e2, axis=1) + acc[:, None, :]
+                out[rows, s0 : s0 + m] = seg
+                acc = seg[:, -1]
+                s0 += m
+            for k, sc in todo:
+                if len(self._cum_cache) < 16:
+                    self._cum_cache[sc] = out[k].copy()
+        return out
+
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
         """The actions as a new (N, n) float64 array clipped to [-1, 1]; ValueError if they are
@@ -627,9 +671,14 @@ class EnvCore:
             raise ValueError(f"action must be finite, got {np.asarray(actions).tolist()}")
         return a
 
-    def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+    def step(self, actions: Any, skip: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """One agent step of every arm; returns (obs, rewards, terminated, truncated, info) with
-        ``info`` a dict of per-arm arrays (see :meth:`info_row` for one arm's plain dict)."""
+        ``info`` a dict of per-arm arrays (see :meth:`info_row` for one arm's plain dict).
+
+        ``skip`` (a boolean mask) marks arms whose results the caller discards because it resets
+        them next (the vector env's next-step autoreset): they draw no noise, so each arm's random
+        stream stays that of a single env."""
         a = self.check_actions(actions)
         N, n = self.num_envs, self.n
         scale = self.residual_scale if self.residual else self._umax[:, None]
@@ -640,7 +689,8 @@ class EnvCore:
             # does not depend on its neighbours (vector env == single envs)
             noise = np.zeros((N, self.steps_per_period, n))
             for i in self._noisy:
-                noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * self._stds[i]
+                if skip is None or not skip[i]:
+                    noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * self._stds[i]
         rec, nrec, status = self.loop.advance(
             self.steps_per_period, residual=residual, noise=noise,
             terminate=self.terminate_on_violation,
@@ -660,6 +710,9 @@ class EnvCore:
             base = self._no_base
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
+        if self._score_w > 0:
+            score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
+                       self._score_w, rewards, self._score_term)
         terminated = res[_R_TERMINATED] > 0.0
         truncated = res[_R_TRUNCATED] > 0.0
         reason = np.empty(N, dtype=object)  # filled with None
@@ -689,7 +742,8 @@ class EnvCore:
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
             "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
-                            "torque": res[_R_TORQUE], "violation": res[_R_PENALTY]},
+                            "torque": res[_R_TORQUE], "score": self._score_term.copy(),
+                            "violation": res[_R_PENALTY]},
         }
         if self._filter_slices:
             info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}
@@ -709,7 +763,8 @@ class EnvCore:
             self.done[:] = terminated | truncated
         else:
             self.done[:] = False
-        obs = self.observe(info, t=t_end)
+        which = None if skip is None or not skip.any() else [int(i) for i in np.flatnonzero(~skip)]
+        obs = self.observe(info, which=which, t=t_end)
         return obs, rewards, terminated, truncated, info
 
     def episode_metrics(self, i: int, termination_reason: str | None = None,

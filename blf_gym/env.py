@@ -11,7 +11,12 @@ from gymnasium import spaces
 from .core import EnvCore, check_env_kwargs, observation_layout
 from .params import Scenario, check_int
 
-__all__ = ["PlanarBLFEnv"]
+__all__ = ["PlanarBLFEnv", "MAX_FPS"]
+
+# the fastest video rate: the default control rate (100 Hz). MP4 (H.264) holds it and players
+# keep its duration (a 60 Hz display drops frames, not time); faster control periods are
+# subsampled to it
+MAX_FPS = 100.0
 
 
 def _obs_table(privileged: bool) -> str:
@@ -129,7 +134,7 @@ class PlanarBLFEnv(gym.Env):
     * v0: initial release.
     """
 
-    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 25}
+    metadata = {"render_modes": ["rgb_array", "rgb_array_list", "human"], "render_fps": 100}
 
     def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
         """Keyword arguments are listed under *Arguments* above; their defaults live in
@@ -147,6 +152,36 @@ class PlanarBLFEnv(gym.Env):
         self._renderer = None
         self._path: list[np.ndarray] = []
         self._needs_reset = True
+        # a video's rate: one frame per control period, or one every k periods above MAX_FPS, so
+        # that a recording's length equals simulated time (render_mode="rgb_array_list" renders
+        # only those frames; "rgb_array" renders whenever it is asked)
+        rate = 1.0 / self.core.control_period
+        self.frame_every = max(1, int(np.ceil(rate / MAX_FPS - 1e-9)))
+        self.metadata = {**self.metadata, "render_fps": rate / self.frame_every}
+        self._frames: list[np.ndarray] = []
+        self._spec = None
+
+    @property
+    def spec(self):
+        """The env's :class:`gymnasium.envs.registration.EnvSpec`; its ``max_episode_steps`` is this
+        env's own episode length in agent steps (``duration / control_period``), filled in when
+        ``gym.make`` sets the spec, so wrappers that read it (``TimeAwareObservation``,
+        sb3-contrib's ``TimeFeatureWrapper``) see the true length. The env truncates itself
+        there; no ``TimeLimit`` is added."""
+        return self._spec
+
+    @spec.setter
+    def spec(self, value) -> None:
+        if value is not None and value.max_episode_steps is None:
+            import dataclasses
+
+            value = dataclasses.replace(value, max_episode_steps=int(self.core.max_episode_steps))
+        self._spec = value
+
+    @property
+    def max_episode_steps(self) -> int:
+        """Agent steps in a full episode: ``duration / control_period``."""
+        return int(self.core.max_episode_steps)
 
     @property
     def scenario(self) -> Scenario:
@@ -166,8 +201,11 @@ class PlanarBLFEnv(gym.Env):
         info["scenario"] = self.scenario
         self._path = []
         self._needs_reset = False
+        self._frames = []
         if self.render_mode == "human":
             self.render()
+        elif self.render_mode == "rgb_array_list":
+            self._frames.append(self._draw())
         return obs, info
 
     def step(self, action):
@@ -179,6 +217,10 @@ class PlanarBLFEnv(gym.Env):
             self._needs_reset = True
         if self.render_mode == "human":
             self.render()
+        elif self.render_mode == "rgb_array_list":
+            k = int(self.core.steps[0])
+            if k % self.frame_every == 0 or term[0] or trunc[0]:
+                self._frames.append(self._draw())
         return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
 
     def trajectory(self):
@@ -186,15 +228,25 @@ class PlanarBLFEnv(gym.Env):
         the same type ``simulate()`` returns); needs ``record=True``."""
         return self.core.trajectory(0)
 
-    def render(self):
-        if self.render_mode is None:
-            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
-            return None
+    def _draw(self) -> np.ndarray:
         from .render import ArmRenderer
 
         if self._renderer is None:
             self._renderer = ArmRenderer(self.scenario, human=self.render_mode == "human")
-        frame = self._renderer.draw(self.core, 0, self._path)
+        return self._renderer.draw(self.core, 0, self._path)
+
+    def render(self):
+        """``rgb_array``: the current frame. ``rgb_array_list``: the frames since the last call,
+        drawn at the video rate ``metadata["render_fps"]`` (every ``frame_every`` agent steps, and
+        at the reset and the episode's last step), so Gymnasium's ``RecordVideo`` writes a video as
+        long as the simulated time. ``human``: draws into a window."""
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode='rgb_array'")
+            return None
+        if self.render_mode == "rgb_array_list":
+            frames, self._frames = self._frames, []
+            return frames
+        frame = self._draw()
         return frame if self.render_mode == "rgb_array" else None
 
     def close(self) -> None:

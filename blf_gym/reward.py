@@ -18,7 +18,14 @@ from .bounds import KA, KB
 from .params import check_bool, check_real
 from .status import ST_DIVERGED, ST_VIOL_STEPS
 
-__all__ = ["SUM_COLUMNS", "RewardWeights", "accumulate_sample", "step_outputs"]
+__all__ = ["SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample", "step_outputs",
+           "score_step"]
+
+PHI_CAP = 50.0
+"""Bound on the score potential (nats): |phi| <= PHI_CAP, so a violation penalty of 2 * PHI_CAP per
+unit of ``score`` weight puts every violating episode below every other."""
+RMSE_FLOOR_SQ = float(np.radians(1e-12)) ** 2
+"""The floor of a mean squared error (rad^2): score_vs_law's RMSE floor of 1e-12 degrees."""
 
 SUM_COLUMNS = ("error_estimate_max", "sum_e1_over_bound_sq", "sum_u_over_max_sq", "samples")
 """Per-arm float sums of one kernel call, declared once: the largest ODE3 error estimate, the sums
@@ -55,7 +62,16 @@ def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):
 
 @dataclass(frozen=True)
 class RewardWeights:
-    """Per-agent-step reward r = alive - tracking * E - torque * U - violation * [ended by it].
+    """Per-agent-step reward r = alive - tracking * E - torque * U + score * (phi_k - phi_{k-1})
+    - violation * [ended by it].
+
+    **The score term** (``score`` > 0; the env's default is :data:`SCORE_REWARD`) pays the change of
+    a potential, phi_k = (1/n) sum_j 1/2 log(L_j(k) / P_j(k)), where P_j(k) and L_j(k) are the sums
+    of e1_j^2 over the 1 ms samples so far of the policy's episode and of the reference law alone on
+    the same scenario (the inner law in residual mode, the proposed law in plain mode; no noise),
+    each floored at score_vs_law's RMSE floor and phi_0 = 0. The sum telescopes: an episode that
+    runs to its end returns ``score * log(score_vs_law)`` of that episode (0 for the law itself,
+    > 0 for a better policy), whatever the control period. phi is kept within +-PHI_CAP.
 
     E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
     normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
@@ -76,6 +92,9 @@ class RewardWeights:
 
     tracking: float = 1.0
     """Weight of the normalized squared tracking error (>= 0)."""
+    score: float = 0.0
+    """Weight of the score term (>= 0; see above). With it, ``violation`` must be at least
+    ``2 * PHI_CAP * score`` so that every violating episode returns less than any other."""
     torque: float = 0.01
     """Weight of the normalized squared torque (>= 0)."""
     alive: float | None = None
@@ -106,7 +125,7 @@ class RewardWeights:
             object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
         object.__setattr__(self, "relative_cap",
                            check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
-        for name in ("tracking", "torque", "violation"):
+        for name in ("tracking", "torque", "violation", "score"):
             object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
         if self.alive is None:
             object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
@@ -127,6 +146,10 @@ class RewardWeights:
 
     def check_episode(self, max_episode_steps: int) -> None:
         """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
+        if self.score > 0 and self.violation < 2 * PHI_CAP * self.score:
+            raise ValueError(f"RewardWeights: with score = {self.score!r}, violation must be >= 2 * PHI_CAP * score = "
+                             f"{2 * PHI_CAP * self.score:g} so that a violating episode returns less than any "
+                             f"other; got violation = {self.violation!r}")
         deficit = self.tracking * self.max_error + self.torque - self.alive
         if deficit > 0 and self.violation < deficit * max_episode_steps:
             raise ValueError(
@@ -180,3 +203,41 @@ def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
         if status[b, ST_DIVERGED] != 0:
             flags |= 2
     return flags
+
+
+SCORE_REWARD = RewardWeights(score=1.0, tracking=0.0, torque=0.0, alive=0.0, violation=2 * PHI_CAP)
+"""The env's default reward: the score term alone, and a violation penalty of 100. A full episode
+returns log(score_vs_law), so returns rank policies as the benchmark does, any violating episode
+returns less than every episode without one (<= -50 against >= -50), and the return does not
+depend on ``control_period``. ``RewardWeights()`` (its field defaults) is the earlier shaped
+reward (alive bonus, normalized tracking and torque), which the shipped plain agent and the configs
+that list their weights were trained with."""
+
+
+@njit(cache=True, error_model="numpy")
+def score_step(ep_samples, ep_e2, law_cum, phi, weight, reward, term):
+    """Add the score term to ``reward`` (N,) in place and write it to ``term``: per arm, the new
+    potential from the episode's sample count ``ep_samples`` (N,), its per-joint sums of e1^2
+    ``ep_e2`` (N, n), and the law's cumulative sums per sample ``law_cum`` (N, samples, n); ``phi``
+    (N,) holds the previous potential and is updated."""
+    N, n = ep_e2.shape
+    for b in range(N):
+        ns = int(ep_samples[b])
+        new = 0.0
+        if ns > 0:
+            k = min(ns, law_cum.shape[1]) - 1
+            fl = RMSE_FLOOR_SQ * ns
+            acc = 0.0
+            for j in range(n):
+                p = ep_e2[b, j]
+                if not p < 1e300:  # inf or NaN: a diverged episode
+                    p = 1e300
+                law = law_cum[b, k, j]
+                if not law < 1e300:
+                    law = 1e300
+                acc += np.log(max(law, fl)) - np.log(max(p, fl))
+            new = min(max(0.5 * acc / n, -PHI_CAP), PHI_CAP)
+        d = weight * (new - phi[b])
+        reward[b] += d
+        term[b] = d
+        phi[b] = new

@@ -2,15 +2,26 @@
 
 The arms are independent episodes of :class:`~blf_gym.env.PlanarBLFEnv`, computed by the same
 :class:`~blf_gym.core.EnvCore` and the same kernel, split over threads. Arm i reset with seed
-``s + i`` is bit-identical to a single env reset with that seed. Autoreset is same-step: when an
-arm ends, ``infos["final_obs"]`` and ``infos["final_info"]`` hold its last observation and info,
-and the returned observation is already the first of its next episode.
+``s + i`` is bit-identical to a single env reset with that seed.
+
+Autoreset follows Gymnasium's modes (``autoreset_mode``, default ``AutoresetMode.NEXT_STEP``, as
+in Gymnasium's own sync and async vector envs, so its vector wrappers accept it):
+
+* ``NEXT_STEP``: the step on which an arm ends returns its last observation and info; the next
+  step resets that arm (its action is ignored) and returns the first observation of the new
+  episode with reward 0, ``terminated`` and ``truncated`` False, and the reset's info entries.
+* ``SAME_STEP`` (on request; the SB3 adapter uses it): an arm that ends is reset in the same step;
+  ``infos["final_obs"]`` and ``infos["final_info"]`` hold its last observation and info, and the
+  returned observation is already the first of its next episode.
 """
 
 from __future__ import annotations
 
+import os
+import sys
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 from gymnasium.utils import seeding
@@ -20,7 +31,7 @@ from gymnasium.vector.utils import batch_space
 from .core import EnvCore, check_env_kwargs
 from .params import check_int, is_integer
 
-__all__ = ["PlanarBLFVectorEnv"]
+__all__ = ["PlanarBLFVectorEnv", "default_threads"]
 
 
 def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
@@ -32,18 +43,57 @@ def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
     return out
 
 
+def default_threads(num_envs: int) -> int:
+    """The vector env's default numba threads: half the cores (at least 1, at most one per arm),
+    so that the learner beside it (torch, which takes every core by default) keeps the rest."""
+    return max(1, min(num_envs, (os.cpu_count() or 1) // 2))
+
+
+_WARNED = []
+
+
+def _warn_if_oversubscribed(env_threads: int) -> None:
+    """Once per process: if torch is already imported and its threads plus the env's exceed the
+    cores, say so (a training loop then waits on busy threads; docs/conventions.md, "Threads")."""
+    torch = sys.modules.get("torch")
+    cpus = os.cpu_count() or 1
+    if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
+        return
+    t = int(torch.get_num_threads())
+    if t + env_threads > cpus:
+        _WARNED.append(True)
+        gym.logger.warn(
+            f"PlanarBLFVectorEnv: torch uses {t} threads beside the env's {env_threads} on {cpus} cores; a "
+            f"training loop slows down when they compete. Call torch.set_num_threads({max(1, cpus - env_threads)}) "
+            "(or set OMP_NUM_THREADS) before training, or pass threads= to the env")
+
+
 class PlanarBLFVectorEnv(VectorEnv):
     """Batched ``PlanarBLF-v0``; keyword arguments are those of :class:`~blf_gym.env.PlanarBLFEnv`
-    plus ``num_envs`` and ``threads`` (default: the number of CPUs)."""
+    plus ``num_envs``, ``autoreset_mode`` (see the module doc) and ``threads`` (default
+    :func:`default_threads`: half the cores, so a learner beside the env is not starved)."""
 
-    metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": []}
+    metadata = {"autoreset_mode": AutoresetMode.NEXT_STEP, "render_modes": []}
 
-    def __init__(self, num_envs: int = 1, render_mode: str | None = None, **kwargs: Any) -> None:
+    def __init__(self, num_envs: int = 1, render_mode: str | None = None,
+                 autoreset_mode: AutoresetMode | str = AutoresetMode.NEXT_STEP, **kwargs: Any) -> None:
         if render_mode is not None:
             raise ValueError("PlanarBLFVectorEnv: render_mode must be None (the vector env does not "
                              f"render; use the single env for pictures), got {render_mode!r}")
+        modes = (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP)
+        mode = autoreset_mode
+        if isinstance(mode, str) and not isinstance(mode, AutoresetMode):
+            mode = next((m for m in modes if mode in (m.value, m.name)), mode)
+        if mode not in modes:
+            raise ValueError("PlanarBLFVectorEnv: autoreset_mode must be AutoresetMode.NEXT_STEP or "
+                             f"AutoresetMode.SAME_STEP (or 'NextStep', 'SameStep'), got {autoreset_mode!r}")
+        self.autoreset_mode = mode
+        self.metadata = {**self.metadata, "autoreset_mode": mode}
         check_env_kwargs(kwargs)
+        if kwargs.get("threads") is None and is_integer(num_envs) and num_envs >= 1:
+            kwargs["threads"] = default_threads(int(num_envs))
         self.core = EnvCore(num_envs, **kwargs)
+        _warn_if_oversubscribed(self.core.loop.threads)
         self.num_envs = self.core.num_envs
         n = self.core.n
         self.single_action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
@@ -52,6 +102,21 @@ class PlanarBLFVectorEnv(VectorEnv):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.render_mode = None
         self._started = False
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+
+    @property
+    def spec(self):
+        """The EnvSpec ``gym.make_vec`` sets, with ``max_episode_steps`` filled in: every arm's
+        episode length in agent steps (``duration / control_period``)."""
+        return getattr(self, "_spec", None)
+
+    @spec.setter
+    def spec(self, value) -> None:
+        if value is not None and value.max_episode_steps is None:
+            import dataclasses
+
+            value = dataclasses.replace(value, max_episode_steps=int(self.core.max_episode_steps))
+        self._spec = value
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         """Reset every arm. ``seed`` s (an int or numpy integer >= 0) seeds arm i with s + i; or
@@ -77,6 +142,7 @@ class PlanarBLFVectorEnv(VectorEnv):
             if s is not None or not self._started:
                 self.core.rngs[i], _ = seeding.np_random(s)
         self._started = True
+        self._autoreset[:] = False
         self.core.reset_envs(range(N), options)
         info: dict[str, Any] = {}
         obs = self.core.observe(info)
@@ -85,6 +151,8 @@ class PlanarBLFVectorEnv(VectorEnv):
     def step(self, actions):
         if not self._started:
             raise RuntimeError("call reset() before step()")
+        if self.autoreset_mode is AutoresetMode.NEXT_STEP:
+            return self._step_next(actions)
         obs, rew, term, trunc, info = self.core.step(actions)
         N = self.num_envs
         done_mask = term | trunc
@@ -101,4 +169,29 @@ class PlanarBLFVectorEnv(VectorEnv):
             self.core.reset_envs(done)
             new_obs = self.core.observe(None, which=done)
             obs[done_mask] = new_obs[done_mask]
+        return obs, rew, term, trunc, out
+
+    def _step_next(self, actions):
+        """Next-step autoreset: the arms that ended on the previous step are reset now instead of
+        stepped (the kernel still advances them, drawing no noise, and their rows are replaced)."""
+        pending = self._autoreset
+        obs, rew, term, trunc, info = self.core.step(actions, skip=pending if pending.any() else None)
+        live = ~pending
+        out = _with_masks(info, live)
+        if pending.any():
+            idx = [int(i) for i in np.flatnonzero(pending)]
+            self.core.reset_envs(idx)
+            rinfo: dict[str, Any] = {}
+            new_obs = self.core.observe(rinfo, which=idx)
+            obs[pending] = new_obs[pending]
+            rew = np.where(pending, 0.0, rew)
+            term = term & live
+            trunc = trunc & live
+            for k, v in rinfo.items():  # the reset's entries for the reset arms
+                if k in out:
+                    out[k] = np.where(pending.reshape((-1,) + (1,) * (np.ndim(v) - 1)), v, out[k])
+                else:
+                    out[k] = v
+                out[f"_{k}"] = out.get(f"_{k}", np.zeros(self.num_envs, dtype=bool)) | pending
+        self._autoreset = term | trunc
         return obs, rew, term, trunc, out

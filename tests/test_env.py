@@ -166,12 +166,12 @@ def test_same_seed_same_actions_are_bit_identical_and_other_seeds_differ():
 def test_zero_residual_reproduces_simulate_bit_for_bit(scenario, controller):
     traj = simulate(scenario, controller)
     assert not traj.diverged
+    w = RewardWeights()  # the shaped reward's terms (the default reward is the score term alone)
     env = gym.make("PlanarBLFResidual-v0", scenario=scenario, controller=controller,
-                   terminate_on_violation=False)
+                   terminate_on_violation=False, reward_weights=w)
     env.reset(seed=0)
     loop = env.unwrapped.core.loop
     umax = env.unwrapped.scenario.sim.max_torque
-    w = RewardWeights()
     spp = 10  # 1 ms samples per 10 ms agent step (the default control_period)
     n_samples = traj.q.shape[0]
     mask = violation_mask(traj.e1, traj.k_a, traj.k_b).any(axis=1)
@@ -253,10 +253,19 @@ def test_termination_at_the_first_violating_integration_step(action):
 
 @pytest.mark.parametrize("env_id,scales", [("PlanarBLF-v0", (0.01, 0.05, 0.5)),
                                            ("PlanarBLFResidual-v0", (1.0,))])
-def test_vector_env_equals_single_envs_across_autoresets(env_id, scales):
+@pytest.mark.parametrize("mode", ["next_step", "same_step"])
+def test_vector_env_equals_single_envs_across_autoresets(env_id, scales, mode):
+    """Arm i of the native vector env is the single env seeded 10 + i, step for step, through
+    several autoresets, in both of Gymnasium's autoreset modes: next-step (the default; the step
+    after an end returns the reset observation with reward 0) and same-step (final_obs/final_info)."""
+    from gymnasium.vector import AutoresetMode
+
     N = 4
-    kw = dict(scenario="randomized", duration=0.3)
-    venv = gym.make_vec(env_id, num_envs=N, **kw)
+    kw = dict(scenario="randomized", duration=0.3, angle_noise_std=1e-4)
+    extra = {} if mode == "next_step" else {"autoreset_mode": AutoresetMode.SAME_STEP}
+    venv = gym.make_vec(env_id, num_envs=N, **kw, **extra)
+    assert venv.metadata["autoreset_mode"] is (AutoresetMode.NEXT_STEP if mode == "next_step"
+                                               else AutoresetMode.SAME_STEP)
     envs = [gym.make(env_id, **kw) for _ in range(N)]
     vobs, vinfo = venv.reset(seed=10)
     for i, e in enumerate(envs):
@@ -266,12 +275,21 @@ def test_vector_env_equals_single_envs_across_autoresets(env_id, scales):
     rng = np.random.default_rng(3)
     ends = {"violation": 0, "time_limit": 0}
     resets = np.zeros(N, dtype=int)
+    pending = np.zeros(N, dtype=bool)  # next-step mode: the arm resets on this step
     for step in range(100):
         acts = (rng.uniform(-1, 1, (N, 3)) * rng.choice(scales, (N, 1))).astype(np.float32)
         vobs, vrew, vterm, vtrunc, vinfo = venv.step(acts)
         for i, e in enumerate(envs):
-            obs, r, term, trunc, info = e.step(acts[i])
             msg = f"step {step}, arm {i}"
+            if pending[i]:
+                obs, info = e.reset()  # the autoreset continues each arm's stream
+                resets[i] += 1
+                pending[i] = False
+                assert vrew[i] == 0.0 and not vterm[i] and not vtrunc[i], msg
+                assert not vinfo["_cost"][i] and vinfo["_time"][i] and vinfo["time"][i] == info["time"], msg
+                np.testing.assert_array_equal(vobs[i], obs, err_msg=msg)
+                continue
+            obs, r, term, trunc, info = e.step(acts[i])
             assert vrew[i] == r, msg
             assert bool(vterm[i]) == term and bool(vtrunc[i]) == trunc, msg
             for key in ("time", "e1", "u", "u_law", "x3", "x3_hat", "cost", "violating_samples",
@@ -279,12 +297,17 @@ def test_vector_env_equals_single_envs_across_autoresets(env_id, scales):
                 np.testing.assert_array_equal(vinfo[key][i], info[key], err_msg=f"{msg}: {key}")
             assert vinfo["reward_info"]["tracking"][i] == info["reward_info"]["tracking"], msg
             if term or trunc:
+                ends[info["termination_reason"] or info["truncation_reason"]] += 1
+                if mode == "next_step":
+                    assert "final_obs" not in vinfo
+                    np.testing.assert_array_equal(vobs[i], obs, err_msg=msg)  # the last observation
+                    pending[i] = True
+                    continue
                 assert vinfo["_final_obs"][i] and vinfo["_final_info"][i], msg
                 np.testing.assert_array_equal(vinfo["final_obs"][i], obs, err_msg=msg)
                 assert vinfo["final_info"]["termination_reason"][i] == info["termination_reason"], msg
                 assert vinfo["final_info"]["time"][i] == info["time"], msg
-                ends[info["termination_reason"] or info["truncation_reason"]] += 1
-                obs, info = e.reset()  # the vector env's autoreset continues each arm's stream
+                obs, info = e.reset()
                 resets[i] += 1
             else:
                 assert not ("_final_obs" in vinfo and vinfo["_final_obs"][i]), msg
@@ -303,8 +326,10 @@ def test_reward_contract_under_random_policies():
     seen = {"inside": 0, "violation": 0}
     # the last config has no alive term: its terminal penalty is sized instead (100 agent steps)
     zero_alive = {"tracking": 2.0, "torque": 0.5, "alive": 0.0, "violation": 250.0}
-    configs = [("PlanarBLF-v0", {}, (0.01, 0.03, 0.1, 1.0)),
-               ("PlanarBLFResidual-v0", {"residual_scale": 60.0}, (0.1, 1.0)),
+    # the shaped reward (RewardWeights' field defaults; the env's default is the score term,
+    # tests/test_conventions.py)
+    configs = [("PlanarBLF-v0", {"reward_weights": {}}, (0.01, 0.03, 0.1, 1.0)),
+               ("PlanarBLFResidual-v0", {"residual_scale": 60.0, "reward_weights": {}}, (0.1, 1.0)),
                ("PlanarBLF-v0", {"reward_weights": zero_alive}, (0.1, 1.0))]
     for env_id, extra, scales in configs:
         for scenario in ("paper-0.1hz", "paper-0.5hz", "randomized"):
@@ -319,7 +344,8 @@ def test_reward_contract_under_random_policies():
                         a = rng.choice([-1.0, 1.0], 3)  # an occasional large action
                     obs, r, term, trunc, info = env.step(a.astype(np.float32))
                     ri = info["reward_info"]
-                    assert set(ri) == {"alive", "tracking", "torque", "violation"}
+                    assert set(ri) == {"alive", "tracking", "torque", "score", "violation"}
+                    assert ri["score"] == 0.0  # score weight 0
                     # r = alive - tracking * E - torque * U - violation * [ended by it]
                     assert r == pytest.approx(ri["alive"] + ri["tracking"] + ri["torque"] + ri["violation"],
                                               rel=1e-12, abs=1e-12)
@@ -623,9 +649,15 @@ def test_render_rgb_array_returns_a_picture():
 
 @pytest.mark.parametrize("control_period", [0.01, 0.005, 0.001])
 def test_truncation_at_the_duration_without_max_episode_steps(control_period):
+    """The env truncates itself at its duration; the spec reports that length (duration /
+    control_period) and gym.make adds no TimeLimit that could cut an episode elsewhere."""
     env = gym.make("PlanarBLFResidual-v0", duration=0.05, control_period=control_period)
-    assert env.spec.max_episode_steps is None
     expected_steps = {0.01: 5, 0.005: 10, 0.001: 50}[control_period]  # 0.05 s / control_period
+    assert env.spec.max_episode_steps == expected_steps
+    w = env
+    while isinstance(w, gym.Wrapper):
+        assert not isinstance(w, gym.wrappers.TimeLimit)
+        w = w.env
     env.reset(seed=0)
     for k in range(1, expected_steps + 1):
         obs, r, term, trunc, info = env.step(ZERO)
