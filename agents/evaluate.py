@@ -127,8 +127,10 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     from blf_gym.core import EnvCore
 
     kw = dict(meta["env_kwargs"])
-    # the scenarios are given; the reward is not needed (a relative one would simulate the law)
-    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights"):
+    # the scenarios are given; the reward is not needed (a relative one would simulate the law);
+    # termination is always off here, whatever the agent was trained with
+    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
+              "terminate_on_violation"):
         kw.pop(k, None)
     core = EnvCore(len(scenarios), record=True, terminate_on_violation=False, threads=threads, **kw)
     for i in range(len(scenarios)):
@@ -407,7 +409,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         # env set-up (control period, noise draws) for agents
         key = (label, "inner" if meta is None else json.dumps(
             {k: v for k, v in meta["env_kwargs"].items() if k not in ("residual_scale", "reward_weights",
-                                                                     "privileged", "residual_filter")},
+                                                                     "privileged", "residual_filter",
+                                                                     "terminate_on_violation")},
             sort_keys=True, default=str))
         if key not in law_cache:
             law_cache[key] = law_reference(scs, meta, args.threads)

@@ -43,7 +43,8 @@ CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 MODES = ("plain", "residual")
 ENV_IDS = {"plain": "PlanarBLF-v0", "residual": "PlanarBLFResidual-v0"}
 ENV_KEYS = ("control_period", "residual_scale", "privileged", "reward_weights", "angle_noise_std",
-            "variations", "duration", "max_torque", "residual_filter", "observation_extras")
+            "variations", "duration", "max_torque", "residual_filter", "observation_extras",
+            "terminate_on_violation")
 CONFIG_KEYS = ("policy", "n_envs", "normalize", "env", "hyperparams", "policy_kwargs", "action_noise_std",
                "normalize_reward", "eval_freq", "curve_suite_seeds", "checkpoint_freq", "note")
 

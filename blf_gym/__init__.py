@@ -9,15 +9,17 @@ Modules: :mod:`~blf_gym.params` (parameters and presets), :mod:`~blf_gym.dynamic
 :mod:`~blf_gym.uncertainty`, :mod:`~blf_gym.reference`, :mod:`~blf_gym.bounds`,
 :mod:`~blf_gym.controller` (the plug-in protocol), :mod:`~blf_gym.simulate` (the compiled closed
 loop), :mod:`~blf_gym.metrics`, :mod:`~blf_gym.scenarios`, :mod:`~blf_gym.env`,
-:mod:`~blf_gym.vector`.
+:mod:`~blf_gym.vector`, :mod:`~blf_gym.safety` (:class:`SafetyGymnasiumWrapper`, Safety-Gymnasium's
+six-value ``step`` with the cost).
 """
 
 from gymnasium.envs.registration import register, registry
 
 from .params import PRESETS, Scenario, preset
+from .safety import SafetyGymnasiumWrapper
 
 __version__ = "0.1.0"
-__all__ = ["PRESETS", "Scenario", "preset", "__version__"]
+__all__ = ["PRESETS", "SafetyGymnasiumWrapper", "Scenario", "preset", "__version__"]
 
 if "PlanarBLF-v0" not in registry:
     register(
