@@ -192,6 +192,33 @@ def test_plain_default_reward_is_the_log_score_and_a_violation_always_loses():
             assert term and ret <= -50.0
 
 
+def test_plain_default_reward_at_0_1_ms_with_the_law_as_a_policy():
+    """The README's plain-env call at control_period=1e-4: the proposed law as an SB3-style policy
+    (baselines.policies) stays inside the bounds and returns log score_vs_law, near 0 (it is the
+    law, sampled), far above a zero torque, which violates and returns at most -50."""
+    from baselines.policies import BaselinePolicy
+
+    duration = 0.5
+    law = _law_rmse(duration)
+    env = gym.make("PlanarBLF-v0", control_period=1e-4, duration=duration, record=True)
+    assert env.spec.max_episode_steps == 5000
+    pol = BaselinePolicy("proposed", env=env)
+    obs, _ = env.reset(seed=0)
+    ret = 0.0
+    while True:
+        a, _ = pol.predict(obs)
+        obs, r, term, trunc, _ = env.step(a)
+        ret += r
+        if term or trunc:
+            break
+    assert trunc and not term
+    rmse = np.degrees(np.sqrt(np.mean(env.unwrapped.trajectory().e1 ** 2, axis=0)))
+    assert ret == pytest.approx(np.log(score_vs_law(rmse, law)), abs=1e-9)
+    assert abs(ret) < 0.05  # the sampled law is within 3 % of the law's RMSE (tests/test_policies.py)
+    zero, _, term, _ = _episode("PlanarBLF-v0", lambda e, i: np.zeros(3), 1e-4, duration)
+    assert term and zero <= -50.0 < ret
+
+
 def test_a_score_weight_needs_a_violation_penalty_that_makes_violations_lose():
     from blf_gym.reward import PHI_CAP, SCORE_REWARD, RewardWeights
 
