@@ -36,7 +36,7 @@ def oracle_rmse(scenarios, control_period: float = 0.01, oracle: bool = True,
     from blf_gym.dynamics import mass_matrix
     from blf_gym.metrics import summarize
 
-    core = EnvCore(len(scenarios), controller="proposed", residual_scale=residual_scale,
+    core = EnvCore(len(scenarios), controller="proposed", residual_scale=residual_scale, reward_weights={},
                    control_period=control_period, record=True, terminate_on_violation=False, threads=1)
     for i in range(len(scenarios)):
         core.rngs[i] = np.random.default_rng(10_000 + i)

@@ -772,8 +772,8 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
     from blf_gym.metrics import provenance
 
     printer(f"blf-sweep: scoring the law on the curve scenarios ({spec['curve_suite_seeds']} suite episodes)")
-    law = law_levels(int(spec["curve_suite_seeds"]), spec["duration"],
-                     spec["controller"] if spec["mode"] == "residual" and spec["controller"] else "proposed")
+    # the benchmark's score is always against the proposed law, whatever the trials' inner law
+    law = law_levels(int(spec["curve_suite_seeds"]), spec["duration"], "proposed")
     address = address or os.environ.get("RAY_ADDRESS")
     if address:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
