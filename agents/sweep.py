@@ -808,8 +808,13 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
             printer(f"blf-sweep: resuming {exp} (finished trials are kept)")
             tuner = tune.Tuner.restore(exp, trainable=trainable, resume_unfinished=True, resume_errored=True,
                                        param_space=_ray_space(spec))
-            # callbacks are not part of the saved state: give the restored run ours
-            tuner._local_tuner._run_config.callbacks = [callback]  # noqa: SLF001
+            # callbacks are not part of the saved state: give the restored run ours (Ray keeps the
+            # run config on its internal tuner; without it the sweep still runs, without progress lines)
+            try:
+                tuner._local_tuner._run_config.callbacks = [callback]  # noqa: SLF001
+            except AttributeError:
+                printer("blf-sweep: this Ray version does not let a restored sweep take callbacks; "
+                        "progress lines and table updates come at the end")
         else:
             tuner = tune.Tuner(trainable, param_space=_ray_space(spec), run_config=run_config,
                                tune_config=tune.TuneConfig(metric="objective", mode="max",
