@@ -152,7 +152,9 @@ def load_pretrained(name: str | Path, scenario: str | None = None, reward: str =
     if scenario is not None:
         kw["scenario"] = scenario
     kw.update(env_kwargs)
-    env_id = meta.get("env_id") or ("PlanarBLFResidual-v0" if meta["mode"] == "residual" else "PlanarBLF-v0")
+    from .train import ENV_IDS
+
+    env_id = meta.get("env_id") or ENV_IDS[meta["mode"]]
     venv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kw))])
     if norm is None:
         return model, venv

@@ -391,6 +391,14 @@ def _decode(params: dict[str, Any], spec: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def trial_identity(config: dict[str, Any], spec: dict[str, Any]) -> tuple[dict[str, Any], int, str]:
+    """(sampled values, seed, run name) of a Ray trial's config: the seed is the grid's ``seed``
+    axis, or the Repeater's ``__trial_index__`` into the sweep's seeds."""
+    params = _decode(config, spec)
+    seed = int(config["seed"]) if "seed" in config else int(spec["seeds"][int(config["__trial_index__"])])
+    return params, seed, run_name(spec, params, seed)
+
+
 def _encode_choice(vals: list[Any]) -> list[Any]:
     return [v if v is None or isinstance(v, (bool, int, float, str)) else "json:" + json.dumps(v) for v in vals]
 
@@ -474,10 +482,9 @@ def _trainable():
             import yaml
 
             self.spec, self.law, self.poll_s = spec, law, poll_s
-            params = _decode(config, spec)
-            seed = int(config["seed"]) if "seed" in config else int(spec["seeds"][int(config["__trial_index__"])])
+            params, seed, name = trial_identity(config, spec)
             self.seed = seed
-            run = self.run = Path(out) / "runs" / run_name(spec, params, seed)
+            run = self.run = Path(out) / "runs" / name
             run.mkdir(parents=True, exist_ok=True)
             cfg_path = run / "config.yaml"
             atomic_write_text(cfg_path, yaml.safe_dump(trial_config(spec, params), sort_keys=False))
@@ -684,10 +691,7 @@ def _make_callback(out: Path, spec: dict[str, Any], law: dict[str, list[float]],
         """Keeps the trials' status, rewrites the tables when a trial ends, prints one line a change."""
 
         def _name(self, trial) -> str:
-            cfg = trial.config
-            params = _decode(cfg, spec)
-            seed = int(cfg["seed"]) if "seed" in cfg else int(spec["seeds"][int(cfg["__trial_index__"])])
-            return run_name(spec, params, seed)
+            return trial_identity(trial.config, spec)[2]
 
         def _line(self, what: str, name: str) -> None:
             info = _write_tables(out, spec, law, statuses, extra)

@@ -20,6 +20,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from blf_gym.io import atomic_write_text
+
 from .sweep import law_levels, main as sweep_main  # noqa: F401 - law_levels is re-exported
 
 __all__ = ["main", "sweep_file"]
@@ -76,7 +78,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "tune_sweep.yaml"
     spec = sweep_file(args.configs, args.algo, args.mode, args.timesteps, args.seeds, args.scenario, args.jobs)
-    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    atomic_write_text(path, yaml.safe_dump(spec, sort_keys=False))
     rest = ["--out", str(args.out)] + (["--address", args.address] if args.address else [])
     return sweep_main([str(path), *rest])
 

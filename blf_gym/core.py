@@ -581,23 +581,25 @@ class EnvCore:
             self._ep_int[i, EP_FIRST_VIOL] = -1
             self._ep_f[i] = 0.0
 
+    def _reference_runs(self, scenarios: Sequence[Scenario], cache: Mapping[Scenario, Any]):
+        """The reference law's runs that ``scenarios`` need: (each scenario without noise, the
+        distinct ones not in ``cache``, a ClosedLoop of the law over those or None). The law is the
+        inner controller in residual mode, the proposed law in plain mode."""
+        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
+        todo = list(dict.fromkeys(k for k in keys if k not in cache))
+        if not todo:
+            return keys, todo, None
+        ref = self.controller if self.residual else make_controller("proposed")
+        return keys, todo, ClosedLoop(todo, ref, self.observer, threads=self._threads)
+
     def law_level(self, scenarios: Sequence[Scenario]) -> tuple[np.ndarray, np.ndarray]:
         """The reference law alone on each scenario, without noise (see
         ``RewardWeights.relative``): each joint's mean of e1^2 (rad^2) over the whole episode,
         (len(scenarios), n), and its mean over each agent step's 1 ms samples,
-        (len(scenarios), max_episode_steps, n)."""
-        mean = np.empty((len(scenarios), self.n))
-        steps = np.empty((len(scenarios), self.max_episode_steps, self.n))
-        todo = []
-        for k, sc in enumerate(scenarios):
-            sc = replace(sc, angle_noise_std=0.0)
-            if sc in self._law_cache:
-                mean[k], steps[k] = self._law_cache[sc]
-            else:
-                todo.append((k, sc))
-        if todo:
-            ref = self.controller if self.residual else make_controller("proposed")
-            loop = ClosedLoop([sc for _, sc in todo], ref, self.observer, threads=self._threads)
+        (len(scenarios), max_episode_steps, n). Each distinct scenario is simulated once."""
+        keys, todo, loop = self._reference_runs(scenarios, self._law_cache)
+        done: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
+        if loop is not None:
             per = np.zeros((len(todo), self.max_episode_steps, self.n))
             total = np.zeros((len(todo), self.n))
             samples = np.zeros((len(todo), 1))
@@ -610,44 +612,51 @@ class EnvCore:
                 samples += ns
             # a floor keeps the ratio finite for a law that tracks perfectly
             level = np.maximum(total / np.maximum(samples, 1.0), 1e-16)
-            for i, (k, sc) in enumerate(todo):
-                mean[k], steps[k] = level[i], per[i]
+            for i, sc in enumerate(todo):
+                done[sc] = (level[i], per[i])
                 if len(self._law_cache) < 64:
                     self._law_cache[sc] = (level[i].copy(), per[i].copy())
+        mean = np.empty((len(scenarios), self.n))
+        steps = np.empty((len(scenarios), self.max_episode_steps, self.n))
+        for k, sc in enumerate(keys):
+            mean[k], steps[k] = done[sc] if sc in done else self._law_cache[sc]
         return mean, steps
+
+    def with_episode_length(self, spec: Any) -> Any:
+        """``spec`` (an EnvSpec, or None) with ``max_episode_steps`` set to this env's episode length
+        in agent steps when it names none: what the single and vector envs report to wrappers."""
+        if spec is None or spec.max_episode_steps is not None:
+            return spec
+        return replace(spec, max_episode_steps=int(self.max_episode_steps))
 
     def law_cumulative(self, scenarios: Sequence[Scenario]) -> np.ndarray:
         """The reference law alone on each scenario, without noise (as :meth:`law_level`): each
         joint's running sum of e1^2 (rad^2) through every 1 ms sample of the episode,
-        (len(scenarios), samples, n), for the score term. A non-finite error counts as +inf."""
+        (len(scenarios), samples, n), for the score term. A non-finite error counts as +inf. Each
+        distinct scenario is simulated once."""
         S = self._law_cum.shape[1]
-        out = np.empty((len(scenarios), S, self.n))
-        todo = []
-        for k, sc in enumerate(scenarios):
-            sc = replace(sc, angle_noise_std=0.0)
-            if sc in self._cum_cache:
-                out[k] = self._cum_cache[sc]
-            else:
-                todo.append((k, sc))
-        if todo:
-            ref = self.controller if self.residual else make_controller("proposed")
-            loop = ClosedLoop([sc for _, sc in todo], ref, self.observer, threads=self._threads)
+        keys, todo, loop = self._reference_runs(scenarios, self._cum_cache)
+        done: dict[Scenario, np.ndarray] = {}
+        if loop is not None:
             sps, e1c = loop.steps_per_sample, CHANNELS.index("e1")
+            cum = np.empty((len(todo), S, self.n))
             acc = np.zeros((len(todo), self.n))
-            rows = [k for k, _ in todo]
             s0 = 0
             while s0 < S:  # in chunks, so the record stays small for a batch of long episodes
                 m = min(1000, S - s0)
                 rec, _, _ = loop.advance(m * sps, record_samples=m)
                 e2 = rec[:, :m, e1c, :] ** 2
                 e2[~np.isfinite(e2)] = np.inf
-                seg = np.cumsum(e2, axis=1) + acc[:, None, :]
-                out[rows, s0 : s0 + m] = seg
-                acc = seg[:, -1]
+                cum[:, s0 : s0 + m] = np.cumsum(e2, axis=1) + acc[:, None, :]
+                acc = cum[:, s0 + m - 1]
                 s0 += m
-            for k, sc in todo:
+            for i, sc in enumerate(todo):
+                done[sc] = cum[i]
                 if len(self._cum_cache) < 16:
-                    self._cum_cache[sc] = out[k].copy()
+                    self._cum_cache[sc] = cum[i].copy()
+        out = np.empty((len(scenarios), S, self.n))
+        for k, sc in enumerate(keys):
+            out[k] = done[sc] if sc in done else self._cum_cache[sc]
         return out
 
     # ------------------------------------------------------------------ step

@@ -172,11 +172,7 @@ class PlanarBLFEnv(gym.Env):
 
     @spec.setter
     def spec(self, value) -> None:
-        if value is not None and value.max_episode_steps is None:
-            import dataclasses
-
-            value = dataclasses.replace(value, max_episode_steps=int(self.core.max_episode_steps))
-        self._spec = value
+        self._spec = self.core.with_episode_length(value)
 
     @property
     def max_episode_steps(self) -> int:

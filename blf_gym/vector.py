@@ -103,20 +103,17 @@ class PlanarBLFVectorEnv(VectorEnv):
         self.render_mode = None
         self._started = False
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._spec = None
 
     @property
     def spec(self):
         """The EnvSpec ``gym.make_vec`` sets, with ``max_episode_steps`` filled in: every arm's
         episode length in agent steps (``duration / control_period``)."""
-        return getattr(self, "_spec", None)
+        return self._spec
 
     @spec.setter
     def spec(self, value) -> None:
-        if value is not None and value.max_episode_steps is None:
-            import dataclasses
-
-            value = dataclasses.replace(value, max_episode_steps=int(self.core.max_episode_steps))
-        self._spec = value
+        self._spec = self.core.with_episode_length(value)
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         """Reset every arm. ``seed`` s (an int or numpy integer >= 0) seeds arm i with s + i; or
