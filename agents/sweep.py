@@ -4,7 +4,8 @@ A sweep is one YAML file (``agents/configs/sweeps/`` has examples; docs/sweeps.m
 
     name: smoke                    # the runs are named <name>-<config id>_s<seed>
     base: ../ppo_PlanarBLFResidual-v0.yaml   # the blf-train config (relative to this file)
-    algo: ppo                      # blf-train --algo, --mode, --scenario (never stress)
+    algo: ppo                      # blf-train --algo, --mode, --controller, --observer, --scenario
+                                   # (any registered plug-in by name; never the stress suite)
     mode: residual
     scenario: randomized
     timesteps: 2048                # the budget of every trial, in agent steps
@@ -65,7 +66,7 @@ from blf_gym.io import atomic_write_json, atomic_write_text
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
 
 GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
-SPEC_KEYS = ("name", "base", "algo", "mode", "controller", "scenario", "timesteps", "seeds", "search",
+SPEC_KEYS = ("name", "base", "algo", "mode", "controller", "observer", "scenario", "timesteps", "seeds", "search",
              "num_samples", "search_seed", "overrides", "space", "scheduler", "concurrency", "note")
 SEARCHES = ("grid", "random", "optuna")
 RAY_DISTS = {"uniform": 2, "loguniform": 2, "quniform": 3, "qloguniform": 3, "randint": 2, "lograndint": 2}
@@ -250,6 +251,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     spec: dict[str, Any] = {
         "name": raw.get("name") or (path.stem if not isinstance(path, dict) else "sweep"),
         "algo": raw.get("algo", "ppo"), "mode": raw.get("mode", "residual"), "controller": raw.get("controller"),
+        "observer": raw.get("observer"),
         "scenario": raw.get("scenario", "randomized"), "timesteps": raw.get("timesteps", 300_000),
         "seeds": raw.get("seeds", [0]), "search": raw.get("search", "grid"), "num_samples": raw.get("num_samples"),
         "search_seed": raw.get("search_seed", 0), "overrides": raw.get("overrides") or {},
@@ -265,6 +267,15 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
         raise _err(where, f"unknown algo {spec['algo']!r}; accepted: {available_algorithms()}")
     if spec["mode"] not in MODES:
         raise _err(where, f"unknown mode {spec['mode']!r}; accepted: {list(MODES)}")
+    from blf_gym.controller import available_controllers, available_observers
+
+    if spec["controller"] is not None:
+        if spec["mode"] != "residual":
+            raise _err(where, "controller applies to mode: residual only (plain mode has no inner law)")
+        if spec["controller"] not in available_controllers():
+            raise _err(where, f"unknown controller {spec['controller']!r}; accepted: {available_controllers()}")
+    if spec["observer"] is not None and spec["observer"] not in available_observers():
+        raise _err(where, f"unknown observer {spec['observer']!r}; accepted: {available_observers()}")
     if spec["scenario"] == "stress":
         raise _err(where, "the stress suite is held out: no sweep trains or selects on it; use randomized")
     if not _is_int(spec["timesteps"]) or spec["timesteps"] < 1:
@@ -458,8 +469,10 @@ def _die_with_parent() -> None:  # pragma: no cover - runs in the child between 
 def trial_command(spec: dict[str, Any], seed: int, cfg_path: Path, run: Path) -> list[str]:
     """The blf-train arguments of one trial (without the program name)."""
     cmd = ["--algo", spec["algo"], "--mode", spec["mode"]]
-    if spec["controller"] and spec["mode"] == "residual":
+    if spec["controller"]:
         cmd += ["--controller", spec["controller"]]
+    if spec["observer"]:
+        cmd += ["--observer", spec["observer"]]
     return cmd + ["--scenario", spec["scenario"], "--timesteps", str(spec["timesteps"]), "--seed", str(seed),
                   "--config", str(cfg_path), "--out", str(run), "--name", run.name, "--no-progress"]
 

@@ -65,6 +65,9 @@ def _load(**kw):
     ({"scheduler": {"hyperband": {}}}, "scheduler must be"),
     ({"scheduler": {"asha": {"grace_period": 1000}}}, r"grace_period must be an integer in \[1, timesteps\]"),
     ({"base": "no_such.yaml"}, "config file not found"),
+    ({"controller": "pid"}, r"unknown controller 'pid'; accepted: \[.*'proposed'"),
+    ({"controller": "bc", "mode": "plain"}, "controller applies to mode: residual only"),
+    ({"observer": "kalman"}, "unknown observer 'kalman'"),
 ])
 def test_a_bad_sweep_file_is_refused_by_name(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -97,6 +100,16 @@ def test_ray_space_keeps_optuna_bounds_and_encodes_lists():
     assert picked == {"[64, 64]", "[256, 256]"}
     grid = _ray_space(_load(search="grid", num_samples=None, seeds=[3, 5], space={"env.residual_scale": {"grid": [4.0, 8.0]}}))
     assert grid["seed"] == {"grid_search": [3, 5]} and grid["env.residual_scale"] == {"grid_search": [4.0, 8.0]}
+
+
+def test_a_registered_plug_in_reaches_the_trials_command_by_name(tmp_path):
+    """The example plug-ins (the README's test command installs them) are usable in a sweep."""
+    from agents.sweep import trial_command
+
+    spec = _load(controller="proposed_integral", observer="eso4")
+    cmd = trial_command(spec, 3, tmp_path / "c.yaml", tmp_path / "run")
+    assert cmd[cmd.index("--controller") + 1] == "proposed_integral"
+    assert cmd[cmd.index("--observer") + 1] == "eso4" and cmd[cmd.index("--seed") + 1] == "3"
 
 
 def test_trial_config_applies_overrides_then_sampled_values():
