@@ -67,7 +67,8 @@ __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "tria
 
 GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
 SPEC_KEYS = ("name", "base", "algo", "mode", "controller", "observer", "scenario", "timesteps", "seeds", "search",
-             "num_samples", "search_seed", "overrides", "space", "scheduler", "concurrency", "note")
+             "num_samples", "search_seed", "overrides", "space", "scheduler", "concurrency", "time_budget_s",
+             "note")
 SEARCHES = ("grid", "random", "optuna")
 RAY_DISTS = {"uniform": 2, "loguniform": 2, "quniform": 3, "qloguniform": 3, "randint": 2, "lograndint": 2}
 LIST_DISTS = ("choice", "grid", "categorical")
@@ -256,7 +257,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
         "seeds": raw.get("seeds", [0]), "search": raw.get("search", "grid"), "num_samples": raw.get("num_samples"),
         "search_seed": raw.get("search_seed", 0), "overrides": raw.get("overrides") or {},
         "space": raw.get("space") or {}, "scheduler": raw.get("scheduler"), "concurrency": raw.get("concurrency"),
-        "note": raw.get("note"),
+        "time_budget_s": raw.get("time_budget_s"), "note": raw.get("note"),
     }
     name = spec["name"]
     if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_." for c in name):
@@ -298,6 +299,9 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
         raise _err(where, f"search_seed must be an integer >= 0, got {spec['search_seed']!r}")
     if spec["concurrency"] is not None and (not _is_int(spec["concurrency"]) or spec["concurrency"] < 1):
         raise _err(where, f"concurrency must be an integer >= 1, got {spec['concurrency']!r}")
+    tb = spec["time_budget_s"]
+    if tb is not None and (not _is_num(tb) or not 0 < tb < float("inf")):
+        raise _err(where, f"time_budget_s must be a number of seconds > 0 (or absent), got {tb!r}")
     if not isinstance(spec["overrides"], dict) or not isinstance(spec["space"], dict):
         raise _err(where, "overrides and space are mappings of dotted config keys")
     for key in spec["overrides"]:
@@ -663,6 +667,10 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
         lines.append(f"| {i} | {_fmt_params(c['params'])} | {' '.join(map(str, c['seeds']))} | {c['objective']:.4f} "
                      f"| {c['score_vs_law']:.4f} [{lo:.4f}, {hi:.4f}] | {scores} | " + " | ".join(cells)
                      + f" | {c['failed_episodes']} | {c['worst_ratio']:.3f} | {c['timesteps']} | {status} |")
+    if spec.get("time_budget_s"):
+        lines += ["", f"Wall-clock budget {spec['time_budget_s']:.0f} s for the whole sweep; status `budget` = a "
+                  "trial stopped when it ran out (ranked on its last curve point, at the steps shown), `pending` "
+                  "= never started."]
     lines += ["", "| run | seed | status | steps | objective | score_vs_law | node |", "|---|---|---|---|---|---|---|"]
     for t in sorted(table["trials"], key=lambda t: t["run"]):
         s = t["score"]
@@ -681,7 +689,8 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
 
 
 def _counts(statuses: dict[str, str], total: int) -> dict[str, int]:
-    c = {k: sum(1 for v in statuses.values() if v == k) for k in ("done", "pruned", "running", "error", "stopped")}
+    c = {k: sum(1 for v in statuses.values() if v == k) for k in ("done", "pruned", "running", "error", "stopped",
+                                                                  "budget")}
     c["pending"] = max(0, total - sum(c.values()))
     return {k: v for k, v in c.items() if v or k in ("done", "running", "pending")}
 
@@ -755,6 +764,48 @@ def _scheduler(spec: dict[str, Any]):
                          reduction_factor=a["reduction_factor"], brackets=a.get("brackets", 1))
 
 
+class _Budget:
+    """A sweep's wall-clock budget, kept across resumes in ``OUT/budget.json`` (the seconds Ray
+    Tune ran before). Ray Tune's own ``time_budget_s`` restarts its clock on every restore, so a
+    sweep stopped and resumed would get its budget again; this one counts what was spent."""
+
+    def __init__(self, out: Path, limit: float | None):
+        self.path, self.limit, self.t0 = out / "budget.json", limit, None
+        self.spent = float(json.loads(self.path.read_text())["used_s"]) if self.path.is_file() else 0.0
+
+    @property
+    def used(self) -> float:
+        return self.spent + (time.time() - self.t0 if self.t0 is not None else 0.0)
+
+    def exhausted(self) -> bool:
+        return self.limit is not None and self.used >= self.limit
+
+    def start(self) -> None:
+        self.t0 = time.time()
+
+    def stop(self) -> None:
+        if self.t0 is not None:
+            self.spent, self.t0 = self.used, None
+            if self.limit is not None:
+                atomic_write_json(self.path, {"used_s": round(self.spent, 3), "limit_s": self.limit})
+
+    def stopper(self):
+        if self.limit is None:
+            return None
+        from ray.tune.stopper import Stopper
+
+        budget = self
+
+        class _Stop(Stopper):
+            def __call__(self, trial_id, result):
+                return False
+
+            def stop_all(self):
+                return budget.exhausted()
+
+        return _Stop()
+
+
 def _spec_digest(spec: dict[str, Any]) -> str:
     keep = {k: v for k, v in spec.items() if k not in ("concurrency", "note")}
     return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()
@@ -819,8 +870,14 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         storage_path = storage or str(out / "ray")
         exp = f"{storage_path.rstrip('/')}/{spec['name']}"
         callback = _make_callback(out, spec, law, statuses, extra, printer)
+        budget = _Budget(out, spec["time_budget_s"])
+        extra["time_budget_s"], extra["budget_used_s"] = spec["time_budget_s"], round(budget.used, 1)
+        if budget.exhausted():
+            printer(f"blf-sweep: the wall-clock budget ({spec['time_budget_s']:.0f} s) is spent; nothing to resume")
+            return _write_tables(out, spec, law, statuses, extra)
+        stopper = budget.stopper()
         run_config = tune.RunConfig(name=spec["name"], storage_path=storage_path, callbacks=[callback], verbose=0,
-                                    failure_config=tune.FailureConfig(max_failures=0))
+                                    failure_config=tune.FailureConfig(max_failures=0), stop=stopper)
         if tune.Tuner.can_restore(exp):
             printer(f"blf-sweep: resuming {exp} (finished trials are kept)")
             tuner = tune.Tuner.restore(exp, trainable=trainable, resume_unfinished=True, resume_errored=True,
@@ -829,6 +886,8 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
             # run config on its internal tuner; without it the sweep still runs, without progress lines)
             try:
                 tuner._local_tuner._run_config.callbacks = [callback]  # noqa: SLF001
+                if stopper is not None:
+                    tuner._local_tuner._run_config.stop = stopper  # noqa: SLF001
             except AttributeError:
                 printer("blf-sweep: this Ray version does not let a restored sweep take callbacks; "
                         "progress lines and table updates come at the end")
@@ -839,11 +898,22 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
                                                            search_alg=_searcher(spec), scheduler=_scheduler(spec),
                                                            max_concurrent_trials=conc))
         t0 = time.time()
-        tuner.fit()
+        budget.start()
+        try:
+            tuner.fit()
+        finally:
+            budget.stop()
         extra["wall_s"] = round(time.time() - t0, 1)
+        extra["budget_used_s"] = round(budget.used, 1)
+        if budget.exhausted():
+            # the trials the budget stopped: Ray ended them (blf-train saved its last checkpoint)
+            for name, st in list(statuses.items()):
+                if st == "running":
+                    statuses[name] = "budget"
+            printer(f"blf-sweep: the wall-clock budget ({spec['time_budget_s']:.0f} s) is spent")
         info = _write_tables(out, spec, law, statuses, extra)
         c = info["counts"]
-        if c.get("done", 0) + c.get("pruned", 0) + c.get("error", 0) < total:
+        if not budget.exhausted() and c.get("done", 0) + c.get("pruned", 0) + c.get("error", 0) < total:
             # Ray Tune caught a Ctrl-C (or SIGTERM), stopped the trials and saved its state
             raise KeyboardInterrupt
     finally:

@@ -68,6 +68,9 @@ def _load(**kw):
     ({"controller": "pid"}, r"unknown controller 'pid'; accepted: \[.*'proposed'"),
     ({"controller": "bc", "mode": "plain"}, "controller applies to mode: residual only"),
     ({"observer": "kalman"}, "unknown observer 'kalman'"),
+    ({"time_budget_s": 0}, "time_budget_s must be a number of seconds > 0"),
+    ({"time_budget_s": "1h"}, "time_budget_s must be a number of seconds > 0"),
+    ({"time_budget_s": True}, "time_budget_s must be a number of seconds > 0"),
 ])
 def test_a_bad_sweep_file_is_refused_by_name(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -270,6 +273,33 @@ def test_asha_prunes_through_blf_train_and_tpe_proposes(tmp_path):
         else:
             assert t["timesteps"] == 3072 and meta["status"] == "completed"
     assert len({json.dumps(t["params"], sort_keys=True) for t in res["trials"]}) == 4
+
+
+def test_a_wall_clock_budget_stops_the_sweep_and_a_resume_does_not_renew_it(tmp_path):
+    """A budget shorter than the trials: Ray Tune stops them when it runs out, the sweep ends
+    normally (exit 0, not an interrupt) with the stopped trials marked 'budget' and the rest
+    never started; the same command then finds the budget spent and starts nothing."""
+    sweep = tmp_path / "budget.yaml"
+    sweep.write_text(SMOKE.read_text().replace("base: ../", f"base: {SMOKE.parent.parent}/")
+                     .replace("name: smoke", "name: budget").replace("seeds: [0, 1]", "seeds: [0]")
+                     .replace("num_samples: 2", "num_samples: 3").replace("timesteps: 2048", "timesteps: 200000")
+                     + "concurrency: 1\ntime_budget_s: 25\n")
+    out = tmp_path / "out"
+    p = _run("agents.sweep", str(sweep), "--out", str(out))
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads((out / "sweep.json").read_text())
+    c = res["counts"]
+    # 200k steps take minutes: the first trial cannot finish in 25 s, and the other two never start
+    assert c.get("budget") == 1 and c.get("pending") == 2 and c.get("done", 0) == 0, c
+    used = json.loads((out / "budget.json").read_text())["used_s"]
+    assert 25 <= used < 25 + 120
+    (run,) = [t for t in res["trials"] if t["status"] == "budget"]
+    assert 0 < run["timesteps"] < 200000
+    assert json.loads((out / "runs" / run["run"] / "metadata.json").read_text())["status"] == "interrupted"
+    assert "Wall-clock budget 25 s" in (out / "sweep.md").read_text()
+    again = _run("agents.sweep", str(sweep), "--out", str(out))
+    assert again.returncode == 0 and "budget (25 s) is spent" in again.stderr
+    assert json.loads((out / "budget.json").read_text())["used_s"] == used
 
 
 def test_blf_tune_is_a_grid_sweep_over_config_files(tmp_path):
