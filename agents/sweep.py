@@ -706,7 +706,7 @@ def _write_tables(out: Path, spec: dict[str, Any], law: dict[str, list[float]], 
 
 
 def _make_callback(out: Path, spec: dict[str, Any], law: dict[str, list[float]], statuses: dict[str, str],
-                   extra: dict[str, Any], printer: Callable[[str], None]):
+                   extra: dict[str, Any], printer: Callable[[str], None], budget: "_Budget | None" = None):
     from ray.tune import Callback
 
     class _Progress(Callback):
@@ -729,8 +729,10 @@ def _make_callback(out: Path, spec: dict[str, Any], law: dict[str, list[float]],
         def on_trial_complete(self, iteration, trials, trial, **info):
             name = self._name(trial)
             steps = int((trial.last_result or {}).get("timesteps", 0))
-            statuses[name] = "done" if steps >= spec["timesteps"] else "pruned"
-            self._line("pruned" if statuses[name] == "pruned" else "finished", name)
+            statuses[name] = ("done" if steps >= spec["timesteps"] else
+                              "budget" if budget is not None and budget.exhausted() else "pruned")
+            self._line({"done": "finished", "pruned": "pruned", "budget": "stopped by the budget"}[statuses[name]],
+                       name)
 
         def on_trial_error(self, iteration, trials, trial, **info):
             name = self._name(trial)
@@ -789,7 +791,12 @@ class _Budget:
             if self.limit is not None:
                 atomic_write_json(self.path, {"used_s": round(self.spent, 3), "limit_s": self.limit})
 
-    def stopper(self):
+    def stopper(self, statuses: dict[str, str]):
+        """Ray Tune's stopper for the budget. Once it is spent, each running trial is stopped at its
+        next curve point, the way ASHA stops one, so its blf-train gets SIGTERM and saves its final
+        checkpoint (stopping the whole experiment at once would kill a trial mid-step, losing the
+        steps since its last checkpoint); the experiment stops when no trial is left running, so a
+        trial can overrun the budget by up to one ``eval_freq``."""
         if self.limit is None:
             return None
         from ray.tune.stopper import Stopper
@@ -798,10 +805,10 @@ class _Budget:
 
         class _Stop(Stopper):
             def __call__(self, trial_id, result):
-                return False
+                return budget.exhausted()
 
             def stop_all(self):
-                return budget.exhausted()
+                return budget.exhausted() and "running" not in statuses.values()
 
         return _Stop()
 
@@ -869,13 +876,13 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         trainable = tune.with_resources(tune.with_parameters(_trainable(), spec=spec, law=law, out=str(out)), {"cpu": 1})
         storage_path = storage or str(out / "ray")
         exp = f"{storage_path.rstrip('/')}/{spec['name']}"
-        callback = _make_callback(out, spec, law, statuses, extra, printer)
         budget = _Budget(out, spec["time_budget_s"])
+        callback = _make_callback(out, spec, law, statuses, extra, printer, budget)
         extra["time_budget_s"], extra["budget_used_s"] = spec["time_budget_s"], round(budget.used, 1)
         if budget.exhausted():
             printer(f"blf-sweep: the wall-clock budget ({spec['time_budget_s']:.0f} s) is spent; nothing to resume")
             return _write_tables(out, spec, law, statuses, extra)
-        stopper = budget.stopper()
+        stopper = budget.stopper(statuses)
         run_config = tune.RunConfig(name=spec["name"], storage_path=storage_path, callbacks=[callback], verbose=0,
                                     failure_config=tune.FailureConfig(max_failures=0), stop=stopper)
         if tune.Tuner.can_restore(exp):
@@ -906,7 +913,7 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         extra["wall_s"] = round(time.time() - t0, 1)
         extra["budget_used_s"] = round(budget.used, 1)
         if budget.exhausted():
-            # the trials the budget stopped: Ray ended them (blf-train saved its last checkpoint)
+            # a trial still marked running (one Ray ended without a result) is the budget's too
             for name, st in list(statuses.items()):
                 if st == "running":
                     statuses[name] = "budget"

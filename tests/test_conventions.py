@@ -259,6 +259,27 @@ def test_load_pretrained_gives_blf_evals_numbers():
     assert tenv.venv.envs[0].unwrapped.core.weights.alive == pytest.approx(1.01)  # the shaped reward it had
 
 
+@pytest.mark.parametrize("name", sorted(d.name for d in (ROOT / "agents" / "pretrained").iterdir()
+                                       if (d / "model.zip").is_file()))
+def test_every_shipped_agent_loads_by_name_and_records_how_it_was_chosen(name):
+    """Each folder blf-eval picks up by default loads through load_pretrained with its trained
+    kwargs (a plain agent through its filter too), acts finitely, and records its seed and how the
+    seed and configuration were chosen, as the protocol asks."""
+    from agents import load_pretrained
+
+    meta = json.loads((ROOT / "agents" / "pretrained" / name / "metadata.json").read_text())
+    assert isinstance(meta["seed"], int) and "chosen before" in meta["trained_as"]
+    model, env = load_pretrained(name, scenario="paper-0.1hz")
+    core = env.venv.envs[0].unwrapped.core
+    assert core.control_period == pytest.approx(meta["env_kwargs"].get("control_period", 0.01))
+    obs = env.reset()
+    for _ in range(3):
+        act, _ = model.predict(obs, deterministic=True)
+        assert act.shape == (1, 3) and np.all(np.isfinite(act))
+        obs, _, _, _ = env.step(act)
+    assert np.all(np.isfinite(obs))
+
+
 # ---- rl-zoo3 ------------------------------------------------------------------------------------
 
 

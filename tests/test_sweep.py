@@ -246,15 +246,25 @@ def test_an_interrupted_sweep_resumes_and_keeps_its_finished_trials(tmp_path):
     assert q.returncode == 2 and "holds another sweep" in q.stderr and "Traceback" not in q.stderr
 
 
+def _smoke_variant(tmp_path: Path, name: str, num_samples: int, timesteps: int, extra: str) -> Path:
+    """The shipped smoke sweep with one seed, its name, size and budget changed and ``extra`` keys
+    appended (a key given again in ``extra`` replaces the smoke file's, e.g. ``search``)."""
+    text = (SMOKE.read_text().replace("base: ../", f"base: {SMOKE.parent.parent}/")
+            .replace("name: smoke", f"name: {name}").replace("seeds: [0, 1]", "seeds: [0]")
+            .replace("num_samples: 2", f"num_samples: {num_samples}").replace("timesteps: 2048", f"timesteps: {timesteps}"))
+    for line in extra.splitlines():
+        key = line.split(":")[0] + ":"
+        text = "\n".join(ln for ln in text.splitlines() if not ln.startswith(key)) + "\n"
+    sweep = tmp_path / f"{name}.yaml"
+    sweep.write_text(text + extra)
+    return sweep
+
+
 def test_asha_prunes_through_blf_train_and_tpe_proposes(tmp_path):
     """ASHA on the learning-curve points, Optuna's TPE proposing: pruned trials stop early and
     their blf-train ends on its SIGTERM path (a final checkpoint, status 'interrupted')."""
-    sweep = tmp_path / "asha.yaml"
-    sweep.write_text(SMOKE.read_text().replace("base: ../", f"base: {SMOKE.parent.parent}/")
-                     .replace("name: smoke", "name: asha").replace("search: random", "search: optuna")
-                     .replace("num_samples: 2", "num_samples: 4").replace("seeds: [0, 1]", "seeds: [0]")
-                     .replace("timesteps: 2048", "timesteps: 3072")
-                     + "scheduler: {asha: {grace_period: 1024, reduction_factor: 2}}\nconcurrency: 1\n")
+    sweep = _smoke_variant(tmp_path, "asha", 4, 3072, "search: optuna\n"
+                           "scheduler: {asha: {grace_period: 1024, reduction_factor: 2}}\nconcurrency: 1\n")
     out = tmp_path / "out"
     p = _run("agents.sweep", str(sweep), "--out", str(out))
     assert p.returncode == 0, p.stderr[-3000:]
@@ -279,23 +289,25 @@ def test_a_wall_clock_budget_stops_the_sweep_and_a_resume_does_not_renew_it(tmp_
     """A budget shorter than the trials: Ray Tune stops them when it runs out, the sweep ends
     normally (exit 0, not an interrupt) with the stopped trials marked 'budget' and the rest
     never started; the same command then finds the budget spent and starts nothing."""
-    sweep = tmp_path / "budget.yaml"
-    sweep.write_text(SMOKE.read_text().replace("base: ../", f"base: {SMOKE.parent.parent}/")
-                     .replace("name: smoke", "name: budget").replace("seeds: [0, 1]", "seeds: [0]")
-                     .replace("num_samples: 2", "num_samples: 3").replace("timesteps: 2048", "timesteps: 200000")
-                     + "concurrency: 1\ntime_budget_s: 25\n")
+    sweep = _smoke_variant(tmp_path, "budget", 3, 200000, "concurrency: 1\ntime_budget_s: 25\n")
     out = tmp_path / "out"
     p = _run("agents.sweep", str(sweep), "--out", str(out))
     assert p.returncode == 0, p.stderr[-3000:]
     res = json.loads((out / "sweep.json").read_text())
     c = res["counts"]
-    # 200k steps take minutes: the first trial cannot finish in 25 s, and the other two never start
-    assert c.get("budget") == 1 and c.get("pending") == 2 and c.get("done", 0) == 0, c
+    # 200k steps take minutes: no trial can finish in 25 s. The running one is stopped at its next
+    # curve point (Ray may start the next one meanwhile; that one stops at its first point)
+    assert c.get("budget", 0) >= 1 and c.get("budget", 0) + c.get("pending", 0) == 3 and c.get("done", 0) == 0, c
     used = json.loads((out / "budget.json").read_text())["used_s"]
     assert 25 <= used < 25 + 120
-    (run,) = [t for t in res["trials"] if t["status"] == "budget"]
-    assert 0 < run["timesteps"] < 200000
-    assert json.loads((out / "runs" / run["run"] / "metadata.json").read_text())["status"] == "interrupted"
+    stopped = [t for t in res["trials"] if t["status"] == "budget"]
+    assert max(t["timesteps"] for t in stopped) > 0 and all(t["timesteps"] < 200000 for t in stopped)
+    for t in stopped:
+        # blf-train was stopped by SIGTERM, not killed: its final save holds every step it took
+        run = out / "runs" / t["run"]
+        meta = json.loads((run / "metadata.json").read_text())
+        assert meta["status"] == "interrupted" and (run / "model.zip").is_file()
+        assert meta["timesteps"] >= t["timesteps"]
     assert "Wall-clock budget 25 s" in (out / "sweep.md").read_text()
     again = _run("agents.sweep", str(sweep), "--out", str(out))
     assert again.returncode == 0 and "budget (25 s) is spent" in again.stderr
