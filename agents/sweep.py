@@ -767,9 +767,10 @@ def _scheduler(spec: dict[str, Any]):
 
 
 class _Budget:
-    """A sweep's wall-clock budget, kept across resumes in ``OUT/budget.json`` (the seconds Ray
-    Tune ran before). Ray Tune's own ``time_budget_s`` restarts its clock on every restore, so a
-    sweep stopped and resumed would get its budget again; this one counts what was spent."""
+    """A sweep's wall-clock budget: the seconds Ray Tune has run this sweep, kept across resumes in
+    ``OUT/budget.json``. Not Ray Tune's own ``time_budget_s`` (its ``TimeoutStopper``), which stops
+    the whole experiment at once: that ends a running trial's blf-train without its final save
+    (seen in issue 16's first sweeps, docs/plain_search.md); see ``stopper``."""
 
     def __init__(self, out: Path, limit: float | None):
         self.path, self.limit, self.t0 = out / "budget.json", limit, None
