@@ -272,6 +272,7 @@ def test_every_shipped_agent_loads_by_name_and_records_how_it_was_chosen(name):
     model, env = load_pretrained(name, scenario="paper-0.1hz")
     core = env.venv.envs[0].unwrapped.core
     assert core.control_period == pytest.approx(meta["env_kwargs"].get("control_period", 0.01))
+    assert core.residual_filter == meta["env_kwargs"].get("residual_filter")  # ppo_plain_searched: barrier
     obs = env.reset()
     for _ in range(3):
         act, _ = model.predict(obs, deterministic=True)
