@@ -499,6 +499,10 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 # bookkeeping at the step's start time t (state x)
                 if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
                     halt = True
+                    if err_run > 0:
+                        # the bound broke while ODE3's error estimate was above tolerance: the
+                        # integration's violation, not the arm's (code 3, a divergence)
+                        diverged = 3
                     break
                 if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
                     st_b[ST_FILTER_BREACHES] += 1
@@ -558,6 +562,8 @@ def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, o
                 st_b[ST_VIOL_STEPS] += 1
                 if st_b[ST_FIRST_VIOL] < 0:
                     st_b[ST_FIRST_VIOL] = k0 + steps
+                if terminate and err_run > 0:
+                    diverged = 3  # as above: this violation ends the episode, on an unstable integration
         ksteps[b] = k0 + steps
         unstable_run[b] = err_run
         st_b[ST_STEPS] = steps
@@ -732,7 +738,8 @@ class Trajectory:
     first_violation_step_time: float | None = None
     saturated_steps: int = 0
     divergence_code: int = 0
-    """0 healthy, 1 non-finite or beyond SimParams.divergence_limit, 2 numerically unstable."""
+    """0 healthy, 1 non-finite or beyond SimParams.divergence_limit, 2 numerically unstable, 3 a
+    bound broken (ending the episode) while the integration was unstable."""
     wall_s: float = 0.0
     message: str = ""
     filter_breaches: int = 0
@@ -922,7 +929,7 @@ class ClosedLoop:
         ``residual`` (N, n) N m is added to the law's torque over the whole call; ``noise``
         (N, n_steps, n) rad is added to the measured angles step by step. Returns
         ``(rec, nrec, status)``: recorded samples (N, S, channels, n), how many per arm, and the
-        status columns [steps, diverged (0, 1 non-finite, 2 unstable), violating steps, first
+        status columns [steps, diverged (0, 1 non-finite, 2 unstable, 3 a terminating violation on an unstable integration), violating steps, first
         violating step or -1, saturated steps, violating 1 ms samples]. ``self.sums`` then holds
         per arm [max ODE3 error estimate, sum of (e1/bound)^2, sum of (u/max_torque)^2, samples,
         then the sum of e1^2 (rad^2) of each joint] over the call's 1 ms samples, and
@@ -987,8 +994,10 @@ def divergence_message(code: int, t: float, dt: float, unstable_steps: int = 100
     ``controller`` is the inner law's name, ``"none"`` in plain mode (the agent's action is the
     whole torque), or None when unknown; it selects the likely cause named in the message. For
     code 2 the run is stopped ``unstable_steps`` steps after the instability began; the message
-    gives both times."""
-    if code not in (1, 2):
+    gives both times. Code 3 is a violation that ended the episode (``terminate``) while ODE3's
+    error estimate was above its tolerance: the integration broke the bound, so it is reported as
+    a divergence, not as the arm's violation."""
+    if code not in (1, 2, 3):
         return ""
     if controller == "none":
         cause = ("With no inner law, the actions are the likely cause: they spin the arm up to extreme "
@@ -1000,6 +1009,11 @@ def divergence_message(code: int, t: float, dt: float, unstable_steps: int = 100
     if code == 1:
         what = (f"simulation diverged at t = {t:.6f} s: the state became non-finite or exceeded "
                 f"SimParams.divergence_limit.")
+    elif code == 3:
+        what = (f"simulation diverged numerically at t = {t:.6f} s: a bound was broken while ODE3's error "
+                f"estimate was above its tolerance, so the integration, not the arm, broke it (the episode "
+                f"ended on that violation before {unstable_steps} consecutive unstable steps, the count "
+                f"that stops a run as unstable, were reached).")
     else:
         onset = max(0.0, t - unstable_steps * dt)
         what = (f"simulation diverged numerically (unstable from t = {onset:.6f} s, stopped at t = {t:.6f} s): "

@@ -11,7 +11,8 @@ __all__ = ["STATUS_COLUMNS", "LAST_COLUMNS"]
 STATUS_COLUMNS = ("steps", "diverged", "violating_steps", "first_violating_step", "saturated_steps",
                   "violating_samples", "filter_breaches", "assumption_failures")
 """Per-arm integer status of one kernel call: steps taken, divergence code (0, 1 non-finite or
-beyond the limit, 2 numerically unstable), violating integration steps, the first one (global
+beyond the limit, 2 numerically unstable, 3 a violation that ended the episode while the integration
+was unstable), violating integration steps, the first one (global
 index, -1 if none), steps with a saturated torque, violating 1 ms samples; with a residual filter,
 the integration steps where its condition did not hold and where an assumption of its guarantee
 failed (its ``breach`` and ``assumptions`` monitors, blf_gym.blocks.ResidualFilter)."""

@@ -144,3 +144,52 @@ def test_no_false_alarm_over_full_episodes_at_the_top_of_the_noise_range(name):
         flagged = [i for i, tr in enumerate(trajs) if tr.diverged]
         assert not flagged, (law, flagged)
         assert all(tr.n_samples == 30_000 for tr in trajs)
+
+
+@pytest.mark.parametrize("name", ["paper-0.1hz", "paper-0.5hz"])
+@pytest.mark.parametrize("law", LAWS)
+def test_the_paper_step_through_the_env_defaults_is_a_divergence(name, law):
+    # at the paper's 1 ms step the env's default termination on violation used to end every
+    # episode as "violation" at 0.04-0.07 s, before the 100-step instability count could fire, so
+    # episode_metrics said diverged=False while the inner path and the env with termination off
+    # said diverged (the ground truth above: halving the step changes the RMSE by > 10 %)
+    sc = preset(name, dt=1e-3, duration=2)
+    assert _truth_unstable(sc, law)
+    env = gym.make("PlanarBLFResidual-v0", scenario=sc, controller=law)  # the env's defaults otherwise
+    env.reset(seed=0)
+    while True:
+        _, _, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
+        if term or trunc:
+            break
+    assert term and info["termination_reason"] == "diverged"
+    assert info["episode_metrics"]["diverged"] is True
+    assert "error estimate was above its tolerance" in info["diverged_message"]
+
+
+def test_a_real_violation_under_termination_is_not_called_a_divergence():
+    # the stress suite's episodes that the proposed law violates at the default step (all 18 of the
+    # 50 held-out ones, at 1.4-4.1 s), and a plain zero torque at the paper's 1 ms step (the arm
+    # drifts out of its bounds without any instability): a violation, not a divergence
+    from blf_gym.core import EnvCore
+    from blf_gym.scenarios import STRESS_SEED_OFFSET, sample_suite
+
+    seeds = [5, 7, 9, 10, 12, 13, 14, 16, 18, 20, 25, 31, 33, 38, 39, 42, 45, 49]
+    scs = [sample_suite(np.random.default_rng(STRESS_SEED_OFFSET + k), preset("paper-0.1hz", duration=5), "stress")
+           for k in seeds]
+    core = EnvCore(len(scs), controller="proposed", reward_weights={}, threads=2)
+    core.reset_envs(range(len(scs)), scenarios=scs)
+    reasons = {}
+    for _ in range(core.max_episode_steps):
+        _, _, term, trunc, info = core.step(np.zeros((len(scs), 3)))
+        for i in np.flatnonzero(term | trunc):
+            reasons.setdefault(int(i), (info["termination_reason"][i], info["episode_metrics"][i]["diverged"]))
+        if len(reasons) == len(scs):
+            break
+    assert reasons == {i: ("violation", False) for i in range(len(scs))}
+    env = gym.make("PlanarBLF-v0", scenario=preset("paper-0.1hz", dt=1e-3, duration=2))
+    env.reset(seed=0)
+    while True:
+        _, _, term, trunc, info = env.step(np.zeros(3, dtype=np.float32))
+        if term or trunc:
+            break
+    assert term and info["termination_reason"] == "violation" and not info["episode_metrics"]["diverged"]
