@@ -16,8 +16,12 @@ By default every policy is judged on the benchmark's three scenario groups: the 
 held-out episodes of the training suite (seeds from 10,000) and 50 of the stress suite (seeds from
 20,000, never trained or selected on).
 
-Writes, with ``--out DIR``: ``results.json`` and ``results.csv`` (docs/model.md section 8) and PNG plots of
-the tracking error with its bounds and of the torques, per scenario.
+Writes, with ``--out DIR``: ``results.json`` and ``results.csv`` (docs/model.md section 8), PNG plots of
+the tracking error with its bounds and of the torques, per scenario, and last ``manifest.json``. Before
+anything else the manifest is replaced by one saying ``"complete": false``; ``results.json`` is
+rewritten after each finished record, so an interrupted run keeps those records; only when every file
+is written does the manifest say ``"complete": true`` and list each file with its size and sha256.
+A set without such a manifest is incomplete. A failed write (a full disk) names the file, exit code 2.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import check_out_dir, os_error_message
+from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, os_error_message
 from blf_gym.metrics import summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
@@ -227,7 +231,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=None, metavar="T",
                    help="threads for the batched simulations (default: one per CPU)")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
-                   help="folder for results.json, results.csv and plots (default: none, the table only)")
+                   help="folder for results.json, results.csv, plots and, written last, manifest.json, which "
+                        "says complete: true only once every file is written (default: none, the table only)")
     p.add_argument("--save-traj", action="store_true",
                    help="with --out: also save trajectories as npz (default off)")
     p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots (default: drawn)")
@@ -381,7 +386,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _run(args, groups, agents, kwargs)
     except OSError as exc:
-        print(f"blf-eval: error: {os_error_message(exc, args.out)}", file=sys.stderr)
+        # the failing file is named (blf_gym.io.atomic_path sees to it); the set stays marked incomplete
+        tail = "" if args.out is None else f"; the set in {args.out} is incomplete (no complete manifest.json)"
+        print(f"blf-eval: error: {os_error_message(exc, args.out)}{tail}", file=sys.stderr)
         return 2
 
 
@@ -418,6 +425,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         if key not in law_cache:
             law_cache[key] = law_reference(scs, meta, args.threads)
         return law_cache[key]
+    if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
+        begin_output_set(args.out, meta_out.get("command"))
     bar = None
     if not args.no_progress:
         from tqdm import tqdm
@@ -449,7 +458,9 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 if args.out is not None:  # finished records are kept if the run is interrupted
                     write_results([r for r, _ in results], args.out, meta_out)
     except KeyboardInterrupt:
-        print("\nblf-eval: interrupted" + ("; finished records were saved" if args.out else ""), file=sys.stderr)
+        print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
+                                           "and manifest.json marks the set incomplete" if args.out else ""),
+              file=sys.stderr)
         return 130
     finally:
         if bar is not None:
@@ -467,14 +478,21 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
           "bound, negative when beyond): worst joint, in degrees; 1st viol: earliest violation (s); "
           "torques in N m per joint.")
     if args.out is not None:
-        write_results(records, args.out, meta_out)
+        files = list(write_results(records, args.out, meta_out))
         written = [] if args.no_plots else _plots(results, args.out)
+        files += written
         if args.save_traj:
             for rec, trajs in results:
                 for k, tr in enumerate(trajs):
-                    tr.save_npz(args.out / "traj" / f"{rec['scenario']}__{rec['policy']}__{k}.npz")
+                    path = args.out / "traj" / f"{rec['scenario']}__{rec['policy']}__{k}.npz"
+                    tr.save_npz(path)
+                    files.append(path)
+        # last, so that a complete manifest means every file above is in place
+        manifest = finish_output_set(args.out, files, meta_out.get("command"))
         print(f"wrote {args.out / 'results.json'}, {args.out / 'results.csv'}"
-              + (f" and {len(written)} plots" if written else ""))
+              + (f", {len(written)} plots" if written else "")
+              + (f", {len(files) - 2 - len(written)} trajectory files" if args.save_traj else "")
+              + f" and, last, {manifest}")
     return 0
 
 

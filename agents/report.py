@@ -237,6 +237,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    from blf_gym.io import MANIFEST, verify_output_set
+
+    if (args.results.parent / MANIFEST).exists():  # sets written before manifests existed have none
+        problem = verify_output_set(args.results.parent)
+        if problem is not None:
+            print(f"warning: {problem}; this report may not cover the whole run", file=sys.stderr)
     rows = pool_seeds(records)
     try:
         stats = seed_statistics(records)
