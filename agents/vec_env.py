@@ -35,10 +35,24 @@ def _row(info: dict[str, Any], i: int) -> dict[str, Any]:
     return out
 
 
-class BLFVecEnv(VecEnv):
-    """SB3 vectorized env of ``num_envs`` PlanarBLF arms; kwargs are PlanarBLFEnv's."""
+_REQUIRED = object()
 
-    def __init__(self, num_envs: int, seed: int | None = None, **env_kwargs: Any) -> None:
+
+class BLFVecEnv(VecEnv):
+    """SB3 vectorized env of ``num_envs`` PlanarBLF arms; kwargs are PlanarBLFEnv's.
+
+    ``controller`` is required, so the mode is always explicit: ``None`` for plain mode (the
+    action is the whole torque, as ``PlanarBLF-v0``), or a law (``"proposed"``, ``"lesobc"``,
+    ``"bc"``, a registered plug-in) for residual mode (as ``PlanarBLFResidual-v0``). Before, leaving
+    it out silently built the plain env."""
+
+    def __init__(self, num_envs: int, seed: int | None = None, *, controller: Any = _REQUIRED,
+                 **env_kwargs: Any) -> None:
+        if controller is _REQUIRED:
+            raise ValueError("BLFVecEnv: give controller= explicitly: None for plain mode (the action is the "
+                             "whole torque) or a law such as 'proposed' for residual mode (the action is a "
+                             "residual over it)")
+        env_kwargs["controller"] = controller
         self.venv = PlanarBLFVectorEnv(num_envs=num_envs, autoreset_mode=AutoresetMode.SAME_STEP, **env_kwargs)
         super().__init__(num_envs, self.venv.single_observation_space, self.venv.single_action_space)
         self._seed = seed

@@ -24,13 +24,13 @@ __all__ = ["PRESETS", "SafetyGymnasiumWrapper", "Scenario", "preset", "__version
 if "PlanarBLF-v0" not in registry:
     register(
         id="PlanarBLF-v0",
-        entry_point="blf_gym.env:PlanarBLFEnv",
+        entry_point="blf_gym.env:make_env",
         vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
     )
 if "PlanarBLFResidual-v0" not in registry:
     register(
         id="PlanarBLFResidual-v0",
-        entry_point="blf_gym.env:PlanarBLFEnv",
-        vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
+        entry_point="blf_gym.env:make_residual_env",
+        vector_entry_point="blf_gym.vector:make_residual_vector_env",
         kwargs={"controller": "proposed"},
     )

@@ -17,7 +17,7 @@ from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .controller import available_controllers, available_observers, make_controller, make_observer
 from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
                      _R_VIOLATED, SCORE_REWARD, RewardWeights, score_step, step_outputs)
-from .params import DT_MIN, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
+from .params import DT_MIN, MAX_DURATION, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import (
@@ -40,11 +40,21 @@ from .simulate import (
     divergence_message,
 )
 
-__all__ = ["RewardWeights", "EnvCore", "OBSERVATION", "observation_layout", "observation_index", "SQUASH_VELOCITY",
+__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout", "observation_index", "SQUASH_VELOCITY",
            "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
 
+
+MAX_ARMS = 65_536
+"""Most arms in one env core (``num_envs``). Every arm keeps its episode's arrays (the default score
+reward's reference, 0.7 MB per arm at 30 s); larger batches are refused at construction, not
+allocated (10**400 arms used to raise OverflowError)."""
+MAX_REFERENCE_BYTES = 8 * 2 ** 30
+"""Most memory the reward's per-episode references (the law's running error for the score term,
+its per-step error for the relative one) may take over all arms, bytes; beyond it the env refuses
+to be built and says which arguments to lower (``num_envs``, ``duration``) or which reward needs
+none (``reward_weights={}``, the shaped reward)."""
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
 SQUASH_VELOCITY = 100.0
@@ -283,6 +293,32 @@ def _clip_finite(a):
     return True
 
 
+_WARNED: list[bool] = []
+
+
+def warn_if_oversubscribed(env_threads: int, owner: str) -> None:
+    """Once per process: if torch is already imported and its threads plus the env's exceed the
+    cores, say so, with the fix. Torch's default (one thread per core) beside the env slowed SB3's
+    PPO through ``gym.make`` from about 1,300-1,600 to 40-280 steps/s on a loaded 2-core machine
+    (docs/conventions.md, "Threads")."""
+    import os
+    import sys
+
+    torch = sys.modules.get("torch")
+    cpus = os.cpu_count() or 1
+    if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
+        return
+    t = int(torch.get_num_threads())
+    if t + env_threads > cpus:
+        import gymnasium as gym
+
+        _WARNED.append(True)
+        gym.logger.warn(
+            f"{owner}: torch uses {t} threads beside the env's {env_threads} on {cpus} cores; a "
+            f"training loop slows down when they compete. Call torch.set_num_threads({max(1, cpus - env_threads)}) "
+            "(or set OMP_NUM_THREADS) before training, or pass threads= to the env")
+
+
 def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
     """ValueError naming any keyword argument the env does not know, with the accepted ones."""
     import inspect
@@ -327,7 +363,8 @@ class EnvCore:
         # what it accepts (bools are not numbers, strings are neither)
         self.single = check_bool("EnvCore:", "single", single)
         o = self.owner = "PlanarBLFEnv:" if self.single else "PlanarBLFVectorEnv:"
-        self.num_envs = check_int(o, "num_envs", num_envs, lo=1)
+        self.num_envs = check_int(o, "num_envs", num_envs, lo=1, hi=MAX_ARMS,
+                                  hint=" (blf_gym.core.MAX_ARMS; each arm keeps per-episode arrays)")
         self.record = check_bool(o, "record", record)
         if self.single and self.num_envs != 1:
             raise ValueError("a single env core has num_envs == 1")
@@ -354,7 +391,9 @@ class EnvCore:
         privileged = check_bool(o, "privileged", privileged)
         terminate_on_violation = check_bool(o, "terminate_on_violation", terminate_on_violation)
         angle_noise_std = check_real(o, "angle_noise_std", angle_noise_std, lo=0.0, unit="rad", none_ok=True)
-        duration = check_real(o, "duration", duration, lo=0.0, lo_open=True, unit="s", none_ok=True)
+        duration = check_real(o, "duration", duration, lo=0.0, hi=MAX_DURATION, lo_open=True, unit="s", none_ok=True,
+                              hint=" (blf_gym.params.MAX_DURATION: an episode's signals and the score reward's "
+                                   "reference are kept per 1 ms sample)")
         max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
         dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
                         hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
@@ -421,6 +460,14 @@ class EnvCore:
         reward_weights.check_episode(self.max_episode_steps)
         self.weights = reward_weights
         self._wvec = reward_weights.pack(self.terminate_on_violation)
+        per_arm = 8 * self.base.arm.n_links * ((self.sim.n_samples if reward_weights.score > 0 else 0)
+                                               + (self.max_episode_steps if reward_weights.relative else 0))
+        if per_arm * self.num_envs > MAX_REFERENCE_BYTES:
+            raise ValueError(
+                f"{o} num_envs={self.num_envs} arms of {self.sim.duration:g} s episodes would need "
+                f"{per_arm * self.num_envs / 2 ** 30:.1f} GiB for the reward's reference to the law "
+                f"(blf_gym.core.MAX_REFERENCE_BYTES is {MAX_REFERENCE_BYTES / 2 ** 30:g} GiB); use fewer arms, "
+                "shorter episodes, or reward_weights={} (the shaped reward, which needs none)")
         self.n = self.base.arm.n_links
         self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
         if residual_filter is not None and not self.residual:

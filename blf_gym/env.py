@@ -2,16 +2,17 @@
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .core import EnvCore, check_env_kwargs, observation_layout
+from .core import EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
 from .params import Scenario, check_int
 
-__all__ = ["PlanarBLFEnv", "MAX_FPS"]
+__all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_residual_controller"]
 
 # the fastest video rate: the default control rate (100 Hz). MP4 (H.264) holds it and players
 # keep its duration (a 60 Hz display drops frames, not time); faster control periods are
@@ -25,6 +26,61 @@ def _obs_table(privileged: bool) -> str:
     for i, (name, unit, lo, hi) in enumerate(rows):
         lines.append(f"    | {i} | {name} | {unit} | {lo:g} | {hi:g} |")
     return "\n".join(lines)
+
+
+def _defaults() -> dict[str, Any]:
+    import inspect
+
+    return {k: p.default for k, p in inspect.signature(EnvCore.__init__).parameters.items()
+            if p.default is not inspect.Parameter.empty}
+
+
+def _weights_text(w: Any) -> str:
+    from dataclasses import fields
+
+    return ", ".join(f"``{f.name}={getattr(w, f.name)!r}``" for f in fields(w))
+
+
+def _reward_text() -> str:
+    """The docstring's reward section, from the code's own defaults (so it cannot drift)."""
+    from .reward import PHI_CAP, SCORE_REWARD, RewardWeights
+
+    d = _defaults()
+    default = "the score reward" if d["reward_weights"] is None else repr(d["reward_weights"])
+    first = textwrap.fill(
+        f"The default (``reward_weights=None``) is {default}, :data:`blf_gym.reward.SCORE_REWARD`: "
+        f"{_weights_text(SCORE_REWARD)}. Each step pays the change of a potential, the running log-ratio of "
+        "the reference law's squared error to the policy's on the same scenario, so a full episode returns "
+        "``log(score_vs_law)`` (0 for the law itself, > 0 for better tracking), whatever the control period; "
+        f"the potential stays within +-{PHI_CAP:g}, and a violation costs {SCORE_REWARD.violation:g}, so "
+        "every violating episode returns less than any other.", 96, initial_indent="    ", subsequent_indent="    ")
+    second = textwrap.fill(
+        "``reward_weights={}`` (or a :class:`blf_gym.core.RewardWeights` / dict of its fields) gives the "
+        f"shaped reward, with field defaults {_weights_text(RewardWeights())}::", 96,
+        initial_indent="    ", subsequent_indent="    ")
+    return f"""{first}
+
+{second}
+
+        r = alive - tracking * E - torque * U + score * (phi_k - phi_(k-1)) - violation * [ended by it]
+
+    with E the mean over the step's 1 ms samples and the joints of (e1 / bound)^2 (<= 1 inside the
+    bounds) and U the mean of (u / max_torque)^2. The env refuses weights under which ending an
+    episode by a violation could pay (see :class:`~blf_gym.reward.RewardWeights`). The terms are
+    returned in ``info["reward_info"]``."""
+
+
+def _truncation_text() -> str:
+    """The docstring's truncation line, from the code's defaults."""
+    from .params import preset
+
+    d = _defaults()
+    dur = preset(d["scenario"]).sim.duration
+    steps = int(round(dur / d["control_period"]))
+    return f"""    * **Truncation**: at the scenario's duration in simulated time ({dur:g} s by default). The env
+      truncates itself there; ``spec.max_episode_steps`` (and the ``max_episode_steps`` property) is
+      that duration in agent steps, ``duration / control_period`` ({steps} with the defaults), set by
+      ``gym.make`` without adding a ``TimeLimit``."""
 
 
 class PlanarBLFEnv(gym.Env):
@@ -59,18 +115,7 @@ class PlanarBLFEnv(gym.Env):
     noise (``angle_noise_std``, a fresh draw for the observation).
 
     ## Rewards
-    Per agent step, with E the mean over the step's 1 ms samples and the joints of
-    (e1 / bound)^2 (the error normalized by the bound on its side, <= 1 inside the bounds) and U
-    the mean of (u / max_torque)^2::
-
-        r = alive - tracking * E - torque * U - violation * [the step ended the episode]
-
-    Defaults ``tracking = 1``, ``torque = 0.01``, ``alive = tracking + torque``,
-    ``violation = 100`` (:class:`blf_gym.core.RewardWeights`). Since ``alive >= tracking +
-    torque``, every step inside the bounds earns r >= 0, so ending an episode by a violation never
-    pays better than staying inside. A smaller ``alive`` (down to 0, rewards near zero) is accepted
-    only with ``violation >= (tracking + torque - alive) * max_episode_steps``, which keeps that
-    guarantee. The terms are returned in ``info["reward_info"]``.
+{_reward_text()}
 
     ## Starting State
     q(0) = q_d(0) + initial_error (zero in the paper presets), qd(0) = 0; observer
@@ -81,10 +126,10 @@ class PlanarBLFEnv(gym.Env):
       (``info["termination_reason"] == "violation"``; off with ``terminate_on_violation=False``,
       which keeps running and counts violations in ``info["cost"]`` and
       ``info["violating_samples"]``); or the simulation diverges (``"diverged"``: non-finite or
-      numerically unstable state, reported with ``info["diverged_message"]``; the observation
-      is the last finite state, never NaN).
-    * **Truncation**: at the scenario's duration in simulated time (30 s by default); no
-      ``max_episode_steps``, so a changed ``control_period`` keeps the duration.
+      numerically unstable state, or a violation that ended the episode while the integration was
+      unstable, reported with ``info["diverged_message"]`` and ``episode_metrics["diverged"]``;
+      the observation is the last finite state, never NaN).
+{_truncation_text()}
 
     ## Info
     ``time`` (s), ``e1`` (rad), ``k_a``, ``k_b`` (rad), ``g_upper = e1 - k_a`` and
@@ -115,7 +160,8 @@ class PlanarBLFEnv(gym.Env):
     (names of optional observation entries to append, e.g. ("z2_hat",); default none),
     ``residual_scale`` (N m, 2.0), ``control_period`` (s, 0.01; a multiple of 1 ms),
     ``privileged`` (False), ``terminate_on_violation`` (True), ``angle_noise_std`` (rad),
-    ``duration`` (s, a whole number of control periods), ``max_torque`` (N m, 150), ``dt`` (s,
+    ``duration`` (s, a whole number of control periods, at most
+    :data:`blf_gym.params.MAX_DURATION`), ``max_torque`` (N m, 150), ``dt`` (s,
     1e-4), ``variations`` (dict of :data:`blf_gym.scenarios.VARIATIONS`; with
     ``scenario="randomized"`` they override the suite's draw), ``reward_weights``,
     ``render_mode`` ("rgb_array" or "human"), ``record`` (False; True keeps the episode's
@@ -140,11 +186,12 @@ class PlanarBLFEnv(gym.Env):
         """Keyword arguments are listed under *Arguments* above; their defaults live in
         :class:`blf_gym.core.EnvCore`."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or None, "
+            raise ValueError(f"PlanarBLFEnv: render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
         check_env_kwargs(kwargs)
         kwargs.setdefault("threads", 1)
         self.core = EnvCore(1, single=True, **kwargs)
+        warn_if_oversubscribed(self.core.loop.threads, "PlanarBLFEnv")
         self.render_mode = render_mode
         n = self.core.n
         self.action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
@@ -249,3 +296,30 @@ class PlanarBLFEnv(gym.Env):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+def check_residual_controller(env_id: str, kwargs: dict[str, Any]) -> None:
+    """ValueError if ``kwargs`` would make the residual id ``env_id`` run plain mode (``controller``
+    None or ``"none"``: every action would become the whole torque, up to ``max_torque``)."""
+    c = kwargs.get("controller", "proposed")
+    if c is None or (isinstance(c, str) and c == "none"):
+        raise ValueError(f"{env_id}: controller={c!r} would run plain mode (each action the whole torque, up to "
+                         "max_torque) under the residual id; give a law (e.g. 'proposed', 'lesobc', 'bc' or a "
+                         "registered plug-in), or make PlanarBLF-v0 for plain mode")
+
+
+def make_env(**kwargs: Any) -> PlanarBLFEnv:
+    """``PlanarBLF-v0``'s entry point: :class:`PlanarBLFEnv` with ``kwargs``.
+
+    A function rather than the class, so that ``gym.make`` hands ``render_mode`` to the env's own
+    check (a class entry point lets Gymnasium read it first, and a junk value such as ``True``
+    failed inside ``gym.make`` with an AttributeError). The env renders every mode it lists
+    natively, so nothing of Gymnasium's render wrapping is lost."""
+    return PlanarBLFEnv(**kwargs)
+
+
+def make_residual_env(**kwargs: Any) -> PlanarBLFEnv:
+    """``PlanarBLFResidual-v0``'s entry point: as :func:`make_env`, and refuses a controller that
+    would make it plain (:func:`check_residual_controller`)."""
+    check_residual_controller("PlanarBLFResidual-v0", kwargs)
+    return PlanarBLFEnv(**kwargs)

@@ -20,6 +20,7 @@ from typing import Any, Literal
 import numpy as np
 
 __all__ = [
+    "MAX_DURATION",
     "ArmParams",
     "FrictionParams",
     "DeadZoneParams",
@@ -42,6 +43,13 @@ __all__ = [
 
 DT_MIN = 1e-7
 """Smallest accepted integration step ``SimParams.dt``, s (10 000 steps per 1 ms sample)."""
+
+MAX_DURATION = 3600.0
+"""Longest accepted episode, s (``SimParams.duration``, the env's ``duration``). What follows an
+episode is kept per 1 ms sample: the inner path's trajectory, and the env's default score reward,
+which holds the law's running error over the whole episode (24 bytes per sample and arm, 86 MB per
+arm at this limit). A longer episode (1e6 s asked for 22 GiB at construction) is refused rather
+than allocated; the paper's episodes are 30 s."""
 
 
 # ---- validation helpers ---------------------------------------------------------------------
@@ -110,13 +118,18 @@ def check_real(owner: str, name: str, value: Any, lo: float | None = None, hi: f
     """``value`` as a float if it is a finite real number in the given range (``lo_open`` /
     ``hi_open`` exclude the ends); None if it is None and ``none_ok``; else ValueError
     ``"<owner>.<name> must be a finite real number ..., got <repr>"``. Bools, strings and
-    complex numbers are refused; numpy integer and float scalars are accepted."""
+    complex numbers are refused; numpy integer and float scalars are accepted, a float32 or float16
+    as the decimal it prints as (np.float32(0.01) is 0.01, not 0.009999999776)."""
     if value is None and none_ok:
         return None
     v = math.nan
     if is_real(value):
         try:
             v = float(value)
+            if isinstance(value, (np.floating, np.ndarray)) and np.asarray(value).dtype.itemsize < 8:
+                # a float32 (or float16) is read as the decimal it prints as, the number its user
+                # wrote: np.float32(0.01) is 0.01, not 0.009999999776 (which is no multiple of 1 ms)
+                v = float(str(np.asarray(value)[()]))
         except (OverflowError, ValueError, TypeError):
             v = math.nan
     if not (math.isfinite(v) and (lo is None or v > lo or (v == lo and not lo_open))
@@ -137,7 +150,10 @@ def check_int(owner: str, name: str, value: Any, lo: int | None = None, hi: int 
     v = int(value) if ok else 0
     if not (ok and (lo is None or v >= lo) and (hi is None or v <= hi)):
         what = ("None or " if none_ok else "") + "an integer" + _range_text(lo, hi, False, False)
-        raise ValueError(f"{_label(owner, name)} must be {what}{hint}, got {value!r}")
+        got = repr(value)
+        if len(got) > 80:  # e.g. 10**400: its 401 digits say nothing more than its size
+            got = f"{got[:20]}...{got[-10:]} ({len(got)} characters)"
+        raise ValueError(f"{_label(owner, name)} must be {what}{hint}, got {got}")
     return v
 
 
@@ -390,8 +406,10 @@ class SimParams:
         _set(self, "sample_period", check_real(o, "sample_period", self.sample_period, DT_MIN, unit="s"))
         _set(self, "dt", check_real(o, "dt", self.dt, DT_MIN, self.sample_period, unit="s",
                                     hint=f" dividing sample_period={self.sample_period} s exactly"))
-        for name, unit in (("duration", "s"), ("max_torque", "N m"), ("divergence_limit", ""),
-                           ("error_rtol", ""), ("error_atol", "")):
+        _set(self, "duration", check_real(o, "duration", self.duration, lo=0.0, hi=MAX_DURATION, lo_open=True,
+                                          unit="s", hint=" (blf_gym.params.MAX_DURATION: an episode's signals and "
+                                          "the score reward's reference are kept per 1 ms sample)"))
+        for name, unit in (("max_torque", "N m"), ("divergence_limit", ""), ("error_rtol", ""), ("error_atol", "")):
             _set(self, name, check_real(o, name, getattr(self, name), lo=0.0, lo_open=True, unit=unit))
         _set(self, "unstable_steps", check_int(o, "unstable_steps", self.unstable_steps, lo=1))
         ratio = self.sample_period / self.dt

@@ -18,7 +18,6 @@ in Gymnasium's own sync and async vector envs, so its vector wrappers accept it)
 from __future__ import annotations
 
 import os
-import sys
 from typing import Any
 
 import gymnasium as gym
@@ -28,10 +27,10 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .core import EnvCore, check_env_kwargs
+from .core import EnvCore, check_env_kwargs, warn_if_oversubscribed
 from .params import check_int, is_integer
 
-__all__ = ["PlanarBLFVectorEnv", "default_threads"]
+__all__ = ["PlanarBLFVectorEnv", "default_threads", "make_residual_vector_env"]
 
 
 def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
@@ -47,25 +46,6 @@ def default_threads(num_envs: int) -> int:
     """The vector env's default numba threads: half the cores (at least 1, at most one per arm),
     so that the learner beside it (torch, which takes every core by default) keeps the rest."""
     return max(1, min(num_envs, (os.cpu_count() or 1) // 2))
-
-
-_WARNED = []
-
-
-def _warn_if_oversubscribed(env_threads: int) -> None:
-    """Once per process: if torch is already imported and its threads plus the env's exceed the
-    cores, say so (a training loop then waits on busy threads; docs/conventions.md, "Threads")."""
-    torch = sys.modules.get("torch")
-    cpus = os.cpu_count() or 1
-    if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
-        return
-    t = int(torch.get_num_threads())
-    if t + env_threads > cpus:
-        _WARNED.append(True)
-        gym.logger.warn(
-            f"PlanarBLFVectorEnv: torch uses {t} threads beside the env's {env_threads} on {cpus} cores; a "
-            f"training loop slows down when they compete. Call torch.set_num_threads({max(1, cpus - env_threads)}) "
-            "(or set OMP_NUM_THREADS) before training, or pass threads= to the env")
 
 
 class PlanarBLFVectorEnv(VectorEnv):
@@ -84,7 +64,7 @@ class PlanarBLFVectorEnv(VectorEnv):
         mode = autoreset_mode
         if isinstance(mode, str) and not isinstance(mode, AutoresetMode):
             mode = next((m for m in modes if mode in (m.value, m.name)), mode)
-        if mode not in modes:
+        if not isinstance(mode, AutoresetMode) or mode not in modes:  # (an array has no truth value)
             raise ValueError("PlanarBLFVectorEnv: autoreset_mode must be AutoresetMode.NEXT_STEP or "
                              f"AutoresetMode.SAME_STEP (or 'NextStep', 'SameStep'), got {autoreset_mode!r}")
         self.autoreset_mode = mode
@@ -93,7 +73,7 @@ class PlanarBLFVectorEnv(VectorEnv):
         if kwargs.get("threads") is None and is_integer(num_envs) and num_envs >= 1:
             kwargs["threads"] = default_threads(int(num_envs))
         self.core = EnvCore(num_envs, **kwargs)
-        _warn_if_oversubscribed(self.core.loop.threads)
+        warn_if_oversubscribed(self.core.loop.threads, "PlanarBLFVectorEnv")
         self.num_envs = self.core.num_envs
         n = self.core.n
         self.single_action_space = spaces.Box(-1.0, 1.0, (n,), dtype=np.float32)
@@ -192,3 +172,12 @@ class PlanarBLFVectorEnv(VectorEnv):
                 out[f"_{k}"] = out.get(f"_{k}", np.zeros(self.num_envs, dtype=bool)) | pending
         self._autoreset = term | trunc
         return obs, rew, term, trunc, out
+
+
+def make_residual_vector_env(num_envs: int = 1, **kwargs: Any) -> PlanarBLFVectorEnv:
+    """``PlanarBLFResidual-v0``'s vector entry point: :class:`PlanarBLFVectorEnv`, refusing a
+    controller that would make it plain (:func:`blf_gym.env.check_residual_controller`)."""
+    from .env import check_residual_controller
+
+    check_residual_controller("PlanarBLFResidual-v0", kwargs)
+    return PlanarBLFVectorEnv(num_envs=num_envs, **kwargs)

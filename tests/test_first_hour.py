@@ -109,7 +109,7 @@ def test_a_checkpoint_set_appears_whole_or_not_at_all(tmp_path):
     from agents.vec_env import BLFVecEnv
     from stable_baselines3.common.vec_env import VecNormalize
 
-    env = VecNormalize(BLFVecEnv(1, seed=0, threads=1, duration=0.05))
+    env = VecNormalize(BLFVecEnv(1, seed=0, threads=1, controller=None, duration=0.05))
     model = PPO("MlpPolicy", env, n_steps=16, batch_size=16, device="cpu", seed=0)
 
     class Boom(RuntimeError):

@@ -33,7 +33,7 @@ SMALL = {"n_steps": 32, "batch_size": 32, "n_epochs": 1, "policy_kwargs": {"net_
 
 
 def _plain_venv(n: int = 2) -> VecNormalize:
-    return VecNormalize(VecMonitor(BLFVecEnv(n, seed=0, threads=1, **ENV)))
+    return VecNormalize(VecMonitor(BLFVecEnv(n, seed=0, threads=1, controller=None, **ENV)))
 
 
 class _Toy(gym.Env):
