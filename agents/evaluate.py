@@ -385,6 +385,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         return _run(args, groups, agents, kwargs)
+    except ValueError as exc:  # e.g. a --duration that is no whole number of an agent's control periods
+        print(f"blf-eval: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return 2
     except OSError as exc:
         # the failing file is named (blf_gym.io.atomic_path sees to it); the set stays marked incomplete
         tail = "" if args.out is None else f"; the set in {args.out} is incomplete (no complete manifest.json)"

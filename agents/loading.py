@@ -1,26 +1,47 @@
 """The one loader of a trained agent: model, observation normalization, metadata and env kwargs.
 
 Everything that scores or runs a ``blf-train`` agent (``blf-eval``, the learning-curve callback's
-consumers, the notebooks, ``agents.report``) loads it here, so every check is made once:
+consumers, the notebooks, ``agents.report``) loads it here, so the folder is checked once, as a
+whole, before anything is scored:
 
-* ``metadata.json`` must be readable JSON with the algorithm, mode and env kwargs;
-* an agent trained with observation normalization (``config.normalize`` in its metadata) must
-  have its ``vecnormalize.pkl``: scored without it, its RMSE is several times worse, silently;
-* the statistics must be readable and match the model's observation size.
+* ``metadata.json`` must be readable JSON with the algorithm (a registered name), mode and env
+  kwargs; ``name``, if given, a non-empty string;
+* ``mode`` must be ``'plain'`` or ``'residual'`` and agree with ``env_kwargs.controller`` (absent,
+  None or ``'none'``: plain; a law's name: residual) and with ``env_id`` when given
+  (``PlanarBLF-v0`` plain, ``PlanarBLFResidual-v0`` residual);
+* ``env_kwargs`` must be a JSON object whose keys the env accepts and whose values pass the env's
+  own checks: the env blf-eval would score the agent in (:func:`scoring_env_kwargs`) is built, and
+  anything it refuses is reported with the field it names;
+* whether the agent was trained with observation normalization must be stated in the metadata
+  (``config.normalize``, written by blf-train), and agree with ``vecnormalize.pkl``: stated true
+  and the file missing, or stated false and the file present, is refused, and so is no statement
+  at all (the file's presence alone is not evidence: scored without its statistics, an agent's
+  RMSE is several times worse, silently);
+* the statistics must be readable, normalize observations, and match the model's observation size;
+* the model's own observation and action spaces (saved in ``model.zip``) must be the env's: the
+  same shape and the same Box bounds.
 
-Each problem raises ``ValueError`` naming the file.
+Each problem raises one ``ValueError`` of one line that starts with the file at fault
+(``metadata.json``, ``model.zip`` or ``vecnormalize.pkl``) and names the field.
 """
 
 from __future__ import annotations
 
 import json
 import pickle
+import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["algorithm_class", "available_algorithms", "load_agent", "load_pretrained", "pretrained_agents"]
+__all__ = ["algorithm_class", "available_algorithms", "check_agent_folder", "load_agent", "load_pretrained",
+           "pretrained_agents", "scoring_env_kwargs"]
 
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
+
+SCORING_REPLACES = ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
+                    "terminate_on_violation")
+"""env kwargs that blf-eval's ``evaluate_agent`` replaces: the scenarios are given, the reward is
+not needed, termination is off."""
 
 
 def available_algorithms() -> list[str]:
@@ -57,6 +78,185 @@ def read_json_object(path: Path, what: str, hint: str = "") -> dict[str, Any]:
     return obj
 
 
+def scoring_env_kwargs(env_kwargs: dict[str, Any]) -> dict[str, Any]:
+    """The keyword arguments of the env blf-eval scores an agent in, from the metadata's
+    ``env_kwargs``: those of :data:`SCORING_REPLACES` dropped, no reward terms (``reward_weights={}``)
+    and termination off. ``blf_gym.core.EnvCore(n, record=True, threads=..., **scoring_env_kwargs(kw))``
+    is ``agents.evaluate.evaluate_agent``'s env."""
+    kw = {k: v for k, v in env_kwargs.items() if k not in SCORING_REPLACES}
+    kw.update(reward_weights={}, terminate_on_violation=False)
+    return kw
+
+
+def _one_line(text: Any) -> str:
+    return " ".join(str(text).split())
+
+
+def _short(value: Any, limit: int = 80) -> str:
+    r = _one_line(repr(value))
+    return r if len(r) <= limit else r[: limit - 3] + "..."
+
+
+def _field_in(message: str, keys: list[str]) -> str | None:
+    """The key of ``keys`` an env error message names first (``control_period`` also as "control
+    period(s)"), or None."""
+    best: tuple[int, str] | None = None
+    for k in keys:
+        m = re.search(r"(?<![\w.])" + re.escape(k).replace("_", "[_ ]") + r"s?(?!\w)", message)
+        if m and (best is None or m.start() < best[0]):
+            best = (m.start(), k)
+    return None if best is None else best[1]
+
+
+def _check_metadata(meta: dict[str, Any], meta_path: Path) -> None:
+    """The checks that need the metadata alone: name, mode, env_kwargs' type and keys."""
+    from blf_gym.core import check_env_kwargs
+
+    from .train import MODES
+
+    name = meta.get("name", "agent")
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"{meta_path}: name: must be a non-empty string (the agent's label in blf-eval's "
+                         f"results), got {_short(name)}")
+    if not isinstance(meta["algo"], str):
+        raise ValueError(f"{meta_path}: algo: must be the name of a registered algorithm, e.g. 'ppo' "
+                         f"(accepted: {available_algorithms()}), got {_short(meta['algo'])}")
+    mode = meta["mode"]
+    if not isinstance(mode, str) or mode not in MODES:
+        raise ValueError(f"{meta_path}: mode: must be one of {list(MODES)} (plain: the agent's action is the "
+                         f"torque; residual: it is added to a law's), got {_short(mode)}")
+    kw = meta["env_kwargs"]
+    if not isinstance(kw, dict):
+        raise ValueError(f"{meta_path}: env_kwargs: must be a JSON object of the env's keyword arguments "
+                         f"(e.g. {{\"control_period\": 0.01}}), got {_short(kw)}")
+    try:
+        check_env_kwargs(kw)
+    except ValueError as exc:
+        unknown = []
+        for k in kw:  # named one by one, so the message can start with the fields
+            try:
+                check_env_kwargs({k: kw[k]})
+            except ValueError:
+                unknown.append(k)
+        raise ValueError(f"{meta_path}: {', '.join(f'env_kwargs.{k}' for k in unknown) or 'env_kwargs'}: "
+                         f"{_one_line(exc)}") from None
+
+
+def _normalization_stated(meta: dict[str, Any], meta_path: Path, stats: Path) -> bool:
+    """config.normalize, which must be stated (true or false) and agree with the statistics file."""
+    config = meta.get("config")
+    present = stats.is_file()
+    has = f"{stats.name} is {'present' if present else 'absent'}"
+    if config is None:
+        raise ValueError(f"{meta_path}: config.normalize: not stated, so whether the agent needs observation "
+                         f"normalization is unknown ({has}); add \"config\": {{\"normalize\": true}} if it was "
+                         "trained with normalize: true (blf-train writes it), false if it was not")
+    if not isinstance(config, dict):
+        raise ValueError(f"{meta_path}: config: must be a JSON object (blf-train writes the run's config there, "
+                         f"with normalize: true or false), got {_short(config)}")
+    if "normalize" not in config:
+        raise ValueError(f"{meta_path}: config.normalize: not stated, so whether the agent needs observation "
+                         f"normalization is unknown ({has}); add \"normalize\": true to its \"config\" if it was "
+                         "trained with normalize: true (blf-train writes it), false if it was not")
+    normalize = config["normalize"]
+    if not isinstance(normalize, bool):
+        raise ValueError(f"{meta_path}: config.normalize: must be true or false, got {_short(normalize)}")
+    if normalize and not present:
+        raise ValueError(f"{stats}: missing. The agent was trained with observation normalization "
+                         f"(metadata config.normalize), and scored without its statistics its numbers "
+                         "mean nothing; restore the file or retrain")
+    if present and not normalize:
+        raise ValueError(f"{meta_path}: config.normalize: false, but {stats} is present; one of them is wrong, "
+                         "and the agent scored with or without these statistics may mean nothing: set "
+                         "config.normalize to true if it was trained with normalization, or remove the file if not")
+    return normalize
+
+
+def _statistics(stats: Path, model_path: Path, model: Any) -> Any:
+    try:
+        with open(stats, "rb") as f:
+            norm = pickle.load(f)
+        obs_shape = tuple(norm.obs_rms.mean.shape)
+    except Exception as exc:  # a truncated or foreign pickle
+        raise ValueError(f"{stats}: not readable as the agent's normalization statistics "
+                         f"({type(exc).__name__}: {_one_line(exc)})") from None
+    if getattr(norm, "norm_obs", True) is not True:
+        raise ValueError(f"{stats}: norm_obs: {_short(getattr(norm, 'norm_obs', None))}, so these statistics "
+                         "would leave the observations as they are, but the metadata states config.normalize true")
+    model_shape = tuple(getattr(model.observation_space, "shape", None) or ())
+    if obs_shape != model_shape:
+        raise ValueError(f"{stats}: obs_rms: statistics for observations of shape {obs_shape}, but the model in "
+                         f"{model_path} takes {model_shape}; they are not this agent's")
+    return norm
+
+
+def _scoring_core(meta: dict[str, Any], meta_path: Path):
+    """The env blf-eval would score the agent in, with one arm; the env's own refusal, as one line
+    naming the env_kwargs field. Building it loads (or, on a first run, compiles) the closed-loop
+    kernel of the agent's controller, observer and filter: the one blf-eval and load_pretrained
+    then step, kept in memory and in numba's disk cache, so no second compile follows. (Only an
+    agent run through another filter, blf-eval --residual-filter, needs a kernel besides this one.)"""
+    from blf_gym.core import EnvCore
+
+    kw = scoring_env_kwargs(meta["env_kwargs"])
+    try:
+        return EnvCore(1, record=True, threads=1, **kw)
+    except (ValueError, TypeError) as exc:
+        msg = _one_line(exc)
+        field = _field_in(msg, [k for k in meta["env_kwargs"] if k not in SCORING_REPLACES])
+        raise ValueError(f"{meta_path}: env_kwargs{'.' + field if field else ''}: the env blf-eval builds "
+                         f"from it refuses it ({msg})") from None
+
+
+def _check_spaces(model: Any, meta: dict[str, Any], meta_path: Path, model_path: Path, core: Any) -> None:
+    """The model's saved observation and action spaces against the env the metadata builds."""
+    import numpy as np
+    from gymnasium import spaces
+
+    from blf_gym.core import observation_layout
+
+    from .train import ENV_IDS
+
+    kw = meta["env_kwargs"]
+    mode = meta["mode"]
+    if core.residual != (mode == "residual"):
+        raise ValueError(f"{meta_path}: mode: {mode!r} contradicts env_kwargs.controller "
+                         f"{_short(kw.get('controller'))}, which builds a {'residual' if core.residual else 'plain'} "
+                         "env (a plain agent has no controller, its action is the whole torque; a residual agent "
+                         "names the law it acts over, e.g. 'proposed')")
+    if "env_id" in meta and meta["env_id"] != ENV_IDS[mode]:
+        raise ValueError(f"{meta_path}: env_id: {_short(meta['env_id'])} contradicts mode {mode!r} "
+                         f"(a {mode} agent acts in {ENV_IDS[mode]!r}; accepted pairs: {ENV_IDS})")
+    obs = model.observation_space
+    if not isinstance(obs, spaces.Box):
+        raise ValueError(f"{model_path}: observation_space: the model observes {_short(obs)}, not a Box; it is "
+                         "not a blf-gym agent")
+    if tuple(obs.shape) != (core.obs_dim,):
+        # the env kwargs that shape the observation, as the metadata gives them
+        given = [k for k in ("privileged", "observation_extras") if k in kw]
+        fields = ", ".join(f"env_kwargs.{k}" for k in given) or "env_kwargs"
+        values = (", ".join(f"{k}={_short(kw[k])}" for k in given)
+                  or "privileged and observation_extras at their defaults")
+        raise ValueError(f"{meta_path}: {fields}: the env they build ({values}) observes {core.obs_dim} entries, "
+                         f"but the model in {model_path} was trained on observations of shape {tuple(obs.shape)}; "
+                         "restore the env_kwargs it was trained with")
+    bad = np.flatnonzero((np.asarray(obs.low, dtype=np.float32) != core.obs_low)
+                         | (np.asarray(obs.high, dtype=np.float32) != core.obs_high))
+    if bad.size:
+        layout = observation_layout(core.n, core.privileged, core.observation_extras)
+        names = ", ".join(f"{layout[i][0]}: [{core.obs_low[i]:g}, {core.obs_high[i]:g}] in the env, "
+                          f"[{obs.low[i]:g}, {obs.high[i]:g}] in the model" for i in bad[:2])
+        raise ValueError(f"{model_path}: observation_space: its Box bounds differ from those of the env "
+                         f"{meta_path} builds at {len(bad)} entr{'y' if len(bad) == 1 else 'ies'} "
+                         f"({names}{', ...' if len(bad) > 2 else ''}); it was trained on another observation")
+    act = model.action_space
+    want = spaces.Box(-1.0, 1.0, (core.n,), dtype=np.float32)
+    if not (isinstance(act, spaces.Box) and act.shape == want.shape and np.array_equal(act.low, want.low)
+            and np.array_equal(act.high, want.high)):
+        raise ValueError(f"{model_path}: action_space: the model acts in {_short(act)}, but the env {meta_path} "
+                         f"builds takes {want} (one normalized torque per joint)")
+
+
 def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
     if not meta_path.is_file():
         raise ValueError(f"{model_path}: no metadata.json beside the model; was it written by blf-train?")
@@ -69,7 +269,9 @@ def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
 
 def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
     """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` run folder or its
-    model zip. The env kwargs the agent was trained with are ``metadata["env_kwargs"]``."""
+    model zip, checked as a whole (the module docstring lists the checks; each problem is one
+    ``ValueError`` naming the file and the field). The env kwargs the agent was trained with are
+    ``metadata["env_kwargs"]``."""
     path = Path(path)
     if path.is_dir():
         if not (path / "model.zip").is_file():
@@ -77,32 +279,29 @@ def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
         path = path / "model.zip"
     if not path.is_file():
         raise ValueError(f"agent model not found: {path}")
-    meta = _metadata(path.with_name("metadata.json"), path)
-    cls = algorithm_class(meta["algo"])
+    meta_path = path.with_name("metadata.json")
+    meta = _metadata(meta_path, path)
+    _check_metadata(meta, meta_path)
+    try:
+        cls = algorithm_class(meta["algo"])
+    except (ValueError, TypeError) as exc:
+        raise ValueError(f"{meta_path}: algo: {_one_line(exc)}") from None
     try:
         model = cls.load(path, device="cpu")
     except Exception as exc:  # SB3 raises several types for a corrupt or foreign zip
-        raise ValueError(f"{path}: cannot be loaded as a {meta['algo'].upper()} model ({exc})") from exc
+        raise ValueError(f"{path}: cannot be loaded as a {str(meta['algo']).upper()} model "
+                         f"({_one_line(exc)})") from exc
     stats = path.with_name("vecnormalize.pkl")
-    config = meta.get("config") if isinstance(meta.get("config"), dict) else None
-    normalized = bool(config.get("normalize")) if config is not None else stats.is_file()
-    norm = None
-    if normalized:
-        if not stats.is_file():
-            raise ValueError(f"{stats}: missing. The agent was trained with observation normalization "
-                             f"(metadata config.normalize), and scored without its statistics its numbers "
-                             "mean nothing; restore the file or retrain")
-        try:
-            with open(stats, "rb") as f:
-                norm = pickle.load(f)
-            obs_shape = tuple(norm.obs_rms.mean.shape)
-        except Exception as exc:  # a truncated or foreign pickle
-            raise ValueError(f"{stats}: not readable as the agent's normalization statistics "
-                             f"({type(exc).__name__}: {exc})") from None
-        if obs_shape != tuple(model.observation_space.shape):
-            raise ValueError(f"{stats}: statistics for observations of shape {obs_shape}, but the model in {path} "
-                             f"takes {tuple(model.observation_space.shape)}")
+    norm = _statistics(stats, path, model) if _normalization_stated(meta, meta_path, stats) else None
+    _check_spaces(model, meta, meta_path, path, _scoring_core(meta, meta_path))
     return model, meta, norm
+
+
+def check_agent_folder(path: str | Path) -> None:
+    """Check a ``blf-train`` run folder (or its model zip) as :func:`load_agent` does, without
+    keeping the model: returns None, or raises the one-line ``ValueError`` naming the file and the
+    field at fault."""
+    load_agent(path)
 
 
 def pretrained_agents() -> list[str]:

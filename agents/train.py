@@ -77,6 +77,12 @@ def validate_config(cfg: Any, where: str) -> None:
             raise ValueError(f"{where}: {key} must be an integer >= 1, got {v!r}")
 
 
+def _stated(cfg: dict[str, Any]) -> dict[str, Any]:
+    """The config as the metadata records it: with ``normalize`` stated, true or false, even when the
+    YAML leaves it out (agents.loading refuses an agent whose metadata does not say it)."""
+    return {**cfg, "normalize": bool(cfg.get("normalize"))}
+
+
 def _make_progress_callback(total: int, start: int, enabled: bool):
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -278,7 +284,8 @@ def train(
     if resume and prior is not None and isinstance(prior.get("config"), dict):
         cfg = prior["config"]
         cfg_path = Path(prior.get("config_file") or "")
-        if config is not None and json.dumps(load_config(config), sort_keys=True) != json.dumps(cfg, sort_keys=True):
+        if config is not None and (json.dumps(_stated(load_config(config)), sort_keys=True)
+                                   != json.dumps(_stated(cfg), sort_keys=True)):
             raise ValueError(f"--config {config} differs from the config this run was trained with "
                              f"({meta_path}, 'config'); --resume keeps the run's own config")
     else:
@@ -306,7 +313,7 @@ def train(
     torch.set_num_threads(1)
     cls = algorithm_class(algo)
     n_envs = int(cfg.get("n_envs", 1))
-    venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **env_kwargs))
+    venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs}))
     start_steps = 0
     prior_model_wall = 0.0
     model = None
@@ -395,7 +402,7 @@ def train(
         "env_id": ENV_IDS[mode],
         "env_kwargs": dict(env_kwargs),
         "config_file": str(cfg_path),
-        "config": cfg,
+        "config": _stated(cfg),
         "seed": seed,
         "timesteps": start_steps,
         "timesteps_requested": timesteps,
