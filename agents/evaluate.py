@@ -8,9 +8,15 @@ duration with termination off, and violations are counted.
 
 Examples::
 
-    blf-eval                                             # the protocol: baselines + shipped agents
+    blf-eval                                  # the whole protocol: every baseline + the shipped agents
+    blf-eval --agents runs/mine               # one new agent against the law, on the whole protocol
+    blf-eval --agents runs/mine --suite-seeds 0   # the same, on the paper presets alone (seconds)
+    blf-eval --suite-seeds 0                  # every baseline and shipped agent on the presets alone
     blf-eval --controllers proposed --agents runs/ppo --suite stress --suite-seeds 50 --out results/
     blf-eval --suite-seeds 0 --scenario-kwargs '{"payload": 0.15}' --duration 10
+
+With ``--agents``, the baselines default to the proposed law alone (the reference of every score):
+scoring one agent costs that agent and the law, not BC's and LESOBC's rows.
 
 By default every policy is judged on the benchmark's three scenario groups: the paper presets, 20
 held-out episodes of the training suite (seeds from 10,000) and 50 of the stress suite (seeds from
@@ -32,18 +38,19 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, os_error_message
-from blf_gym.metrics import summarize, write_results
+from blf_gym.metrics import EpisodeStats, episode_stats, summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
 from .loading import load_agent  # the one agent loader, re-exported here
 
-__all__ = ["main", "evaluate_controller", "evaluate_agent", "build_scenarios", "load_agent"]
+__all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes", "law_reference",
+           "build_scenarios", "load_agent"]
 
 
 def registered_controllers() -> list[str]:
@@ -116,18 +123,42 @@ def build_scenarios(
     return groups
 
 
+CONTROLLER_BATCH = 16
+"""Episodes a baseline controller runs at once on the inner path (its arms are independent, so the
+results do not depend on it; it bounds the memory of their 1 ms records)."""
+AGENT_BATCH = 50
+"""Episodes an agent steps at once, in one batched env. An agent's actions come from one batched
+network call per step, and a batch of another size may round differently in the last bits, so it
+is the protocol's largest group (50 stress episodes): each of the protocol's groups is one batch."""
+
+
+def controller_episodes(name: str, scenarios: Sequence[Scenario], threads: int | None = None,
+                        observer: str = "leso", batch: int = CONTROLLER_BATCH) -> Iterator[Any]:
+    """A baseline controller's trajectories on the inner path, one per scenario, in order, computed
+    ``batch`` episodes at a time (episode i has noise seed ``EVAL_SEED_OFFSET + i``), so a caller
+    that reduces each one as it comes keeps at most a batch of 1 ms records in memory."""
+    from blf_gym.simulate import simulate_batch
+
+    for lo in range(0, len(scenarios), batch):
+        part = list(scenarios[lo : lo + batch])
+        trajs = simulate_batch(part, name, observer, noise_seeds=[EVAL_SEED_OFFSET + lo + i for i in range(len(part))],
+                               threads=threads)
+        while trajs:
+            yield trajs.pop(0)
+
+
 def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int | None = None,
                         observer: str = "leso"):
     """Trajectories of a baseline controller on the inner path, one per scenario."""
-    from blf_gym.simulate import simulate_batch
-
-    return simulate_batch(scenarios, name, observer, noise_seeds=[EVAL_SEED_OFFSET + i for i in range(len(scenarios))],
-                          threads=threads)
+    return list(controller_episodes(name, scenarios, threads, observer))
 
 
-def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
-                   threads: int | None = None):
-    """Trajectories of a trained agent, all episodes stepped together in one batched env."""
+def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
+                   threads: int | None = None, batch: int = AGENT_BATCH) -> Iterator[Any]:
+    """A trained agent's trajectories, one per scenario, in order: ``batch`` episodes stepped
+    together in one batched env at a time (episode i draws its noise from
+    ``default_rng(EVAL_SEED_OFFSET + i)``). Each trajectory's record is released as it is handed
+    over, so a caller that reduces them keeps at most one batch of records."""
     from blf_gym.core import EnvCore
 
     kw = dict(meta["env_kwargs"])
@@ -139,19 +170,29 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     # a reward that needs no run of the law (the score and relative terms each simulate it per
     # scenario); the metrics do not use the reward
     kw["reward_weights"] = {}
-    core = EnvCore(len(scenarios), record=True, terminate_on_violation=False, threads=threads, **kw)
-    for i in range(len(scenarios)):
-        core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + i)
-    core.reset_envs(range(len(scenarios)), scenarios=list(scenarios))
-    obs = core.observe()
-    steps = {int(round(sc.sim.duration / core.control_period)) for sc in scenarios}
-    if len(steps) != 1:
+    steps = {sc.sim.duration for sc in scenarios}
+    if len(steps) > 1:
         raise ValueError("all evaluation scenarios of an agent must share one duration")
-    for _ in range(steps.pop()):
-        o = norm.normalize_obs(obs) if norm is not None else obs
-        action, _ = model.predict(o, deterministic=True)
-        obs, *_ = core.step(action)
-    return [core.trajectory(i) for i in range(len(scenarios))]
+    for lo in range(0, len(scenarios), batch):
+        part = list(scenarios[lo : lo + batch])
+        core = EnvCore(len(part), record=True, terminate_on_violation=False, threads=threads, **kw)
+        for i in range(len(part)):
+            core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
+        core.reset_envs(range(len(part)), scenarios=part)
+        obs = core.observe()
+        for _ in range(int(round(part[0].sim.duration / core.control_period))):
+            o = norm.normalize_obs(obs) if norm is not None else obs
+            action, _ = model.predict(o, deterministic=True)
+            obs, *_ = core.step(action)
+        for i in range(len(part)):
+            yield core.trajectory(i, release=True)
+
+
+def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
+                   threads: int | None = None):
+    """Trajectories of a trained agent, all episodes stepped together in batches of
+    :data:`AGENT_BATCH` (:func:`agent_episodes`)."""
+    return list(agent_episodes(model, meta, norm, scenarios, threads))
 
 
 class _ZeroResidual:
@@ -186,19 +227,21 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
 
 
 def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = None,
-                  threads: int | None = None):
-    """The proposed law's trajectories on the same episodes and noise as a policy's.
+                  threads: int | None = None) -> list[EpisodeStats]:
+    """The proposed law on the same episodes and noise as a policy's, each episode reduced to its
+    :class:`blf_gym.metrics.EpisodeStats` (what ``summarize(law=...)`` reads; no signals are kept).
 
     For a baseline (``meta`` None) that is the inner path with the same noise seeds. For an agent
     it is the env path with a zero residual over the proposed law, the agent's control period and
     the same per-episode generators, so that the measurement noise sequence is the agent's."""
     if meta is None:
-        return evaluate_controller("proposed", scenarios, threads)
+        return [episode_stats(t) for t in controller_episodes("proposed", scenarios, threads)]
     kw = dict(meta["env_kwargs"])
     kw["controller"] = "proposed"
-    for k in ("privileged", "residual_filter"):
+    for k in ("privileged", "residual_filter", "observation_extras"):
         kw.pop(k, None)
-    return evaluate_agent(_ZeroResidual(), {"mode": "residual", "env_kwargs": kw}, None, scenarios, threads)
+    return [episode_stats(t) for t in agent_episodes(_ZeroResidual(), {"mode": "residual", "env_kwargs": kw}, None,
+                                                     scenarios, threads)]
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -206,7 +249,8 @@ def _parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--controllers", nargs="*", default=None, metavar="NAME",
                    help=f"baseline controllers to score on the inner path (default: every registered one, "
-                        f"here {' '.join(registered_controllers())}; none with an empty list)")
+                        f"here {' '.join(registered_controllers())}; with --agents, the proposed law alone, the "
+                        "reference every score is against; none with an empty list)")
     p.add_argument("--observer", default="leso", metavar="NAME",
                    help="observer of the baseline controllers (a registered plug-in; default leso)")
     p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
@@ -353,7 +397,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not isinstance(kwargs, dict):
             raise ValueError("--scenario-kwargs must be a JSON object")
         if args.controllers is None:
-            args.controllers = registered_controllers()
+            # scoring one's own agent costs that agent and the law, not every baseline's rows
+            args.controllers = ["proposed"] if args.agents else registered_controllers()
         for c in args.controllers:
             if c not in registered_controllers():
                 raise ValueError(f"unknown controller {c!r}; accepted values: {registered_controllers()}")
@@ -435,27 +480,44 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         from tqdm import tqdm
 
         bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
-    results: list[tuple[dict[str, Any], list[Any]]] = []
+    results: list[tuple[dict[str, Any], list[Any]]] = []  # (record, [the group's first episode, for the plots])
+    traj_files: list[Path] = []
+    want_first = args.out is not None and not args.no_plots
     try:
         for name, kind, agent in jobs:
             for label, scs in groups:
                 if bar is not None:
                     bar.set_postfix_str(f"{name} / {label}")
                 t0 = time.perf_counter()
-                trajs = (evaluate_controller(name, scs, args.threads, args.observer) if agent is None
-                         else evaluate_agent(*agent, scs, args.threads))
+                episodes = (controller_episodes(name, scs, args.threads, args.observer) if agent is None
+                            else agent_episodes(*agent, scs, args.threads))
+                # each episode is reduced as it comes: only the group's first is kept (for the plots),
+                # and with --save-traj each is written as it finishes, so memory does not grow with
+                # the number of episodes
+                stats, first = [], []
+                for k, tr in enumerate(episodes):
+                    if k == 0 and want_first:
+                        first.append(tr)
+                    if args.save_traj:
+                        path = args.out / "traj" / f"{label}__{name}__{k}.npz"
+                        tr.save_npz(path)
+                        traj_files.append(path)
+                    stats.append(episode_stats(tr))
+                    del tr
                 wall = time.perf_counter() - t0
                 meta = None if agent is None else agent[1]
-                law = (trajs if (agent is None and name == "proposed" and args.observer == "leso")
-                       else law_for(label, scs, meta))
+                if agent is None and name == "proposed" and args.observer == "leso":
+                    law = law_cache.setdefault((label, "inner"), stats)  # the law is this row itself
+                else:
+                    law = law_for(label, scs, meta)
                 prov = _group_provenance(label, scs, kwargs)
                 if meta is not None:
                     prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
                                 observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
                 else:
                     prov.update(observer=args.observer)
-                rec = summarize(trajs, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
-                results.append((rec, trajs))
+                rec = summarize(stats, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
+                results.append((rec, first))
                 if bar is not None:
                     bar.update(1)
                 if args.out is not None:  # finished records are kept if the run is interrupted
@@ -483,13 +545,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     if args.out is not None:
         files = list(write_results(records, args.out, meta_out))
         written = [] if args.no_plots else _plots(results, args.out)
-        files += written
-        if args.save_traj:
-            for rec, trajs in results:
-                for k, tr in enumerate(trajs):
-                    path = args.out / "traj" / f"{rec['scenario']}__{rec['policy']}__{k}.npz"
-                    tr.save_npz(path)
-                    files.append(path)
+        files += written + traj_files
         # last, so that a complete manifest means every file above is in place
         manifest = finish_output_set(args.out, files, meta_out.get("command"))
         print(f"wrote {args.out / 'results.json'}, {args.out / 'results.csv'}"

@@ -847,17 +847,20 @@ class EnvCore:
             "truncation_reason": truncation_reason,
         }
 
-    def trajectory(self, i: int = 0):
+    def trajectory(self, i: int = 0, release: bool = False):
         """Arm i's current episode so far on the 1 ms grid, as a
         :class:`blf_gym.simulate.Trajectory` (requires ``record=True``), with the same counters
         as the inner path's: violating integration steps, the first one, saturated steps and
-        divergence."""
+        divergence. ``release=True`` frees the arm's record once it is copied out (an evaluation
+        that reduces each episode as it comes keeps one copy, not two)."""
         from .simulate import CHANNELS, Trajectory, divergence_message
 
         if not self.record:
             raise ValueError("trajectories are kept only with record=True")
         chunks = self._chunks[i]
         r = np.concatenate(chunks) if chunks else np.zeros((0, len(CHANNELS), self.n))
+        if release:
+            self._chunks[i] = []
         signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
                    for k, name in enumerate(CHANNELS)}
         ei = self._ep_int[i]

@@ -20,7 +20,7 @@ import io
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
@@ -32,6 +32,8 @@ __all__ = [
     "violation_mask",
     "score_vs_law",
     "summarize",
+    "EpisodeStats",
+    "episode_stats",
     "write_results",
     "read_results",
     "read_provenance",
@@ -102,6 +104,57 @@ def _traj_arrays(traj: Any) -> dict[str, np.ndarray]:
     return {k: np.asarray(s[k]) for k in ("t", "e1", "k_a", "k_b", "u", "saturated")}
 
 
+class EpisodeStats(NamedTuple):
+    """One episode reduced to what a results record needs (:func:`episode_stats`), so that many
+    episodes can be scored without keeping their signals: per joint, the sum of e1^2 (rad^2), the
+    violating samples, the largest distance beyond a bound and the closest approach to one (rad),
+    the sum of u^2 and the peak |u| (N m), the saturated samples; the sample count, the per-joint
+    RMSE (degrees, None for an episode without samples), the violating samples (any joint), whether
+    it failed or diverged, and its earliest violation (s, a sample or an integration step)."""
+
+    samples: int
+    sq: "np.ndarray | None"
+    viol: "np.ndarray | None"
+    excursion: "np.ndarray | None"
+    margin: "np.ndarray | None"
+    u_sq: "np.ndarray | None"
+    u_peak: "np.ndarray | None"
+    saturated: "np.ndarray | None"
+    rmse_deg: "list[float] | None"
+    violating_samples: int
+    failed: bool
+    diverged: bool
+    first_violation_s: "float | None"
+    n_joints: int
+
+
+def episode_stats(traj: Any) -> EpisodeStats:
+    """A :class:`blf_gym.simulate.Trajectory` (or a dict of its signals) as :class:`EpisodeStats`;
+    an ``EpisodeStats`` is returned as it is."""
+    if isinstance(traj, EpisodeStats):
+        return traj
+    a, mask, ep_rmse, ep_viol, ep_failed = _episode(traj)
+    e1, ka, kb, u = a["e1"], a["k_a"], a["k_b"], a["u"]
+    n_joints = e1.shape[1] if e1.ndim == 2 else 3
+    diverged = bool(getattr(traj, "diverged", False))
+    if mask is None:
+        return EpisodeStats(0, None, None, None, None, None, None, None, None, 0, True, True, None, n_joints)
+    beyond = np.maximum(np.maximum(e1 - ka, -kb - e1), 0.0)
+    marg = np.minimum(ka - e1, e1 + kb)
+    # earliest violation: a 1 ms sample, or an integration step between samples
+    candidates = []
+    if mask.any():
+        candidates.append(float(a["t"][np.argmax(mask.any(axis=1))]))
+    step_t = getattr(traj, "first_violation_step_time", None)
+    if step_t is not None:
+        candidates.append(float(step_t))
+    return EpisodeStats(
+        samples=int(e1.shape[0]), sq=np.sum(e1 ** 2, axis=0), viol=mask.sum(axis=0), excursion=beyond.max(axis=0),
+        margin=marg.min(axis=0), u_sq=np.sum(u ** 2, axis=0), u_peak=np.abs(u).max(axis=0),
+        saturated=a["saturated"].sum(axis=0), rmse_deg=ep_rmse, violating_samples=ep_viol, failed=ep_failed,
+        diverged=diverged, first_violation_s=min(candidates) if candidates else None, n_joints=n_joints)
+
+
 def summarize(
     trajectories: Iterable[Any],
     policy: str,
@@ -114,17 +167,19 @@ def summarize(
 ) -> dict[str, Any]:
     """Pool episodes into one results record.
 
-    ``trajectories`` are :class:`blf_gym.simulate.Trajectory` objects (or dicts of their signals).
+    ``trajectories`` are :class:`blf_gym.simulate.Trajectory` objects (or dicts of their signals),
+    or their :class:`EpisodeStats` (:func:`episode_stats`; the record is the same, to the bit, so
+    a caller can reduce each episode as it finishes and keep no signals).
     RMSE pools the squared error of all 1 ms samples of all episodes, per joint; an episode fails
     if any of its samples or integration steps violated a bound, or it diverged. ``rmse_cvar_deg``
     is the mean of the worst half of the episodes' RMSE, each averaged over the joints first.
     ``max_excursion_deg`` and ``min_margin_deg`` are per joint, over all episodes.
 
-    ``law``: the proposed law's trajectories on the same episodes (same scenario, same noise
-    sequence), one per episode, for :func:`score_vs_law` per episode (``per_episode_score``), its
-    pooled form (``score_vs_law``: the same geometric mean on the pooled RMSEs),
-    ``law_failure_rate`` and ``certificate_broken``. Without it those fields are None.
-    ``provenance`` (see :data:`PROVENANCE_FIELDS`) is copied into the record.
+    ``law``: the proposed law's trajectories (or their EpisodeStats) on the same episodes (same
+    scenario, same noise sequence), one per episode, for :func:`score_vs_law` per episode
+    (``per_episode_score``), its pooled form (``score_vs_law``: the same geometric mean on the
+    pooled RMSEs), ``law_failure_rate`` and ``certificate_broken``. Without it those fields are
+    None. ``provenance`` (see :data:`PROVENANCE_FIELDS`) is copied into the record.
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -142,21 +197,18 @@ def summarize(
     per_episode_rmse: list[float] = []
     eps: list[tuple[list[float] | None, int, bool]] = []
     episodes = 0
+    n_joints = 3
     for traj in trajectories:
-        a, mask, ep_rmse, ep_viol, ep_failed = _episode(traj)
-        eps.append((ep_rmse, ep_viol, ep_failed))
-        e1, ka, kb, u = a["e1"], a["k_a"], a["k_b"], a["u"]
+        st = episode_stats(traj)
+        eps.append((st.rmse_deg, st.violating_samples, st.failed))
         episodes += 1
-        n_joints = e1.shape[1] if e1.ndim == 2 else 3
-        if mask is None:
+        n_joints = st.n_joints
+        if st.sq is None:
             diverged = True
             fails += 1
             continue
-        beyond = np.maximum(np.maximum(e1 - ka, -kb - e1), 0.0)
-        marg = np.minimum(ka - e1, e1 + kb)
-        sq = np.sum(e1 ** 2, axis=0)
         if sq_sum is None:
-            n = e1.shape[1]
+            n = st.sq.shape[0]
             sq_sum = np.zeros(n)
             viol = np.zeros(n, dtype=np.int64)
             exc = np.zeros(n)
@@ -164,26 +216,19 @@ def summarize(
             u_sq = np.zeros(n)
             u_peak = np.zeros(n)
             sat = np.zeros(n)
-        sq_sum += sq
-        count += e1.shape[0]
-        viol += mask.sum(axis=0)
-        exc = np.maximum(exc, beyond.max(axis=0))
-        margin = np.minimum(margin, marg.min(axis=0))
-        u_sq += np.sum(u ** 2, axis=0)
-        u_peak = np.maximum(u_peak, np.abs(u).max(axis=0))
-        sat += a["saturated"].sum(axis=0)
-        per_episode_rmse.append(float(np.mean(ep_rmse)))
-        diverged |= bool(getattr(traj, "diverged", False))
-        # earliest violation: a 1 ms sample, or an integration step between samples
-        candidates = []
-        if mask.any():
-            candidates.append(float(a["t"][np.argmax(mask.any(axis=1))]))
-        step_t = getattr(traj, "first_violation_step_time", None)
-        if step_t is not None:
-            candidates.append(float(step_t))
-        if candidates:
-            first = min(candidates) if first is None else min(first, *candidates)
-        fails += ep_failed
+        sq_sum += st.sq
+        count += st.samples
+        viol += st.viol
+        exc = np.maximum(exc, st.excursion)
+        margin = np.minimum(margin, st.margin)
+        u_sq += st.u_sq
+        u_peak = np.maximum(u_peak, st.u_peak)
+        sat += st.saturated
+        per_episode_rmse.append(float(np.mean(st.rmse_deg)))
+        diverged |= st.diverged
+        if st.first_violation_s is not None:
+            first = st.first_violation_s if first is None else min(first, st.first_violation_s)
+        fails += st.failed
     if episodes == 0:
         raise ValueError("summarize needs at least one trajectory")
     extra: dict[str, Any] = {
@@ -193,19 +238,17 @@ def summarize(
         "per_episode_score": None, "score_vs_law": None, "certificate_broken": None, "law_failure_rate": None,
     }
     if law is not None:
-        law = list(law)
-        if len(law) != len(eps):
-            raise ValueError(f"summarize: {len(law)} law trajectories for {len(eps)} episodes")
-        law_eps = [_episode(t)[2:] for t in law]
-        extra["per_episode_score"] = [score_vs_law(p[0], q[0]) for p, q in zip(eps, law_eps)]
-        extra["law_failure_rate"] = sum(q[2] for q in law_eps) / len(law_eps)
-        extra["certificate_broken"] = sum(p[2] and not q[2] for p, q in zip(eps, law_eps)) / len(eps)
+        law_st = [episode_stats(t) for t in law]
+        if len(law_st) != len(eps):
+            raise ValueError(f"summarize: {len(law_st)} law trajectories for {len(eps)} episodes")
+        extra["per_episode_score"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, law_st)]
+        extra["law_failure_rate"] = sum(q.failed for q in law_st) / len(law_st)
+        extra["certificate_broken"] = sum(p[2] and not q.failed for p, q in zip(eps, law_st)) / len(eps)
         law_sq = law_n = 0.0
-        for t in law:
-            e = _traj_arrays(t)["e1"]
-            if e.shape[0]:
-                law_sq = law_sq + np.sum(e ** 2, axis=0)
-                law_n += e.shape[0]
+        for q in law_st:
+            if q.samples:
+                law_sq = law_sq + q.sq
+                law_n += q.samples
         pooled_law = np.degrees(np.sqrt(law_sq / law_n)).tolist() if law_n else None
         pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
         extra["score_vs_law"] = score_vs_law(pooled, pooled_law)

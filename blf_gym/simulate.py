@@ -619,23 +619,46 @@ def _is_cached(dispatcher) -> bool:
     return bool(dispatcher.signatures) or Path(dispatcher._cache._cache_file._index_path).is_file()
 
 
-def _remove_stale_cache(cache: Path, prefix: str, digest: str) -> None:
-    """Delete cache files of older builds of the same kernel (they are never used again)."""
+def remove_stale_cache(cache: Path, prefix: str, digest: str) -> list[Path]:
+    """Delete numba's cache files of older builds of one kernel, ``simulate.{prefix}{digest}-...``
+    with another 10-hex-digit digest (they are never used again); return what was deleted.
+
+    Only that exact name with another digest is stale. Other kernels whose names merely start with
+    the prefix stay: the unfiltered ``advance__n3__proposed__leso__`` is a prefix of the filtered
+    ``advance__n3__proposed__leso__barrier__...``, and a glob on the prefix deleted those, so every
+    run that built one kernel recompiled the other."""
+    import re
+
     if not cache.is_dir():
-        return
+        return []
+    pattern = re.compile(rf"simulate\.{re.escape(prefix)}([0-9a-f]{{10}})-")
+    gone = []
     for f in cache.glob(f"simulate.{prefix}*"):
-        if digest not in f.name:
+        m = pattern.match(f.name)
+        if m and m.group(1) != digest:
             try:
                 f.unlink()
+                gone.append(f)
             except OSError:
                 pass
+    return gone
 
 
-def compile_notice(controller: str, observer: str, cache: Path) -> None:
-    """Tell the user why the first run waits (printed once per kernel, on standard error)."""
+def kernel_label(controller: str, observer: str, residual_filter: str | None = None, plain: bool = False) -> str:
+    """A compiled closed loop in a user's words: the law (or none, for plain torques), the filter and
+    what it acts on, the observer."""
+    law = "plain torques (no inner law)" if controller == "none" else f"the {controller} law"
+    filt = ("" if residual_filter is None else
+            f", its {residual_filter} filter on the agent's {'whole torque' if plain else 'residual'}")
+    return f"{law}{filt}, with the {observer} observer"
+
+
+def compile_notice(label: str, cache: Path) -> None:
+    """Tell the user why the first run waits (printed once per kernel, on standard error); ``label``
+    is :func:`kernel_label`'s."""
     import sys
 
-    print(f"blf-gym: compiling the closed loop for {controller} + {observer} (first run only, about 15-50 s; "
+    print(f"blf-gym: compiling the closed loop for {label} (first run only, about 15-50 s; "
           f"cached in {cache})", file=sys.stderr, flush=True)
 
 
@@ -677,8 +700,8 @@ def _specialise(conn: Connection):
                         "_res_filter": conn.res_filter, **sizes}, inline="always")
         kernel = _clone(_advance_template, f"advance__n{n}__{tag}", {"_stage": stage, **sizes}, nogil=True, _nrt=False)
         cache = _cache_dir(kernel)
-        _remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
-        _remove_stale_cache(cache, f"advance__n{n}__{pair}__", digest)
+        remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
+        remove_stale_cache(cache, f"advance__n{n}__{pair}__", digest)
         _KERNELS[key] = kernel
     return _KERNELS[key]
 
@@ -828,8 +851,9 @@ class ClosedLoop:
         fresh = not _is_cached(self._kernel)
         if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
-            label = self.controller.name + (f" + {self.residual_filter.name} filter" if self.residual_filter else "")
-            compile_notice(label, self.observer.name, _cache_dir(self._kernel))
+            label = kernel_label(self.controller.name, self.observer.name,
+                                 self.residual_filter.name if self.residual_filter else None, self.plain)
+            compile_notice(label, _cache_dir(self._kernel))
         c = self.connection
         self.N = len(scenarios)
         self.nx = 2 * n + c.n_obs + c.n_ctrl

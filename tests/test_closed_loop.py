@@ -221,3 +221,46 @@ def test_stateful_leso_recovers_velocity_and_disturbance_from_sampled_signals():
     assert np.all(np.abs(x3 - tr.x3_hat[1000:]).max(axis=0) < 1.0)
     with pytest.raises(ValueError, match="k0"):
         LESO(k0=0.0)
+
+
+def test_the_cache_keeps_every_kernel_and_drops_only_stale_builds_of_the_same_one(tmp_path):
+    # before: the stale-cache cleanup globbed simulate.{prefix}*, and the unfiltered kernel's prefix
+    # (advance__n3__proposed__leso__) also matched both barrier kernels, so building one deleted the
+    # others and every blf-eval run with the certified agent recompiled (about 30 s each)
+    from blf_gym.simulate import remove_stale_cache
+
+    new, old = "0123456789", "abcdef0123"
+    names = {
+        f"simulate.advance__n3__proposed__leso__{new}-329.py311.nbi": True,        # this build: kept
+        f"simulate.advance__n3__proposed__leso__{new}-329.py311.1.nbc": True,
+        f"simulate.advance__n3__proposed__leso__{old}-329.py311.nbi": False,       # a stale build: gone
+        f"simulate.advance__n3__proposed__leso__{old}-329.py311.1.nbc": False,
+        f"simulate.advance__n3__proposed__leso__barrier__{old}-329.py311.nbi": True,        # other kernels
+        f"simulate.advance__n3__proposed__leso__barrier_plain__{old}-329.py311.nbi": True,
+        f"simulate.advance__n3__proposed__leso2__{old}-329.py311.nbi": True,
+        f"simulate.stage__n3__proposed__leso__{old}-300.py311.nbi": True,
+    }
+    for name in names:
+        (tmp_path / name).write_text("x")
+    gone = remove_stale_cache(tmp_path, "advance__n3__proposed__leso__", new)
+    assert sorted(p.name for p in gone) == sorted(k for k, keep in names.items() if not keep)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(k for k, keep in names.items() if keep)
+
+
+def test_building_one_kernel_leaves_the_others_in_the_disk_cache():
+    # the real cache: the unfiltered law, then both barrier kernels, then the law again; every
+    # kernel's index file is still on disk at the end
+    from pathlib import Path
+
+    from blf_gym.params import preset
+    from blf_gym.simulate import ClosedLoop
+
+    sc = preset("paper-0.1hz", duration=0.01)
+    loops = [ClosedLoop([sc], "proposed", threads=1),
+             ClosedLoop([sc], "proposed", threads=1, residual_filter="barrier"),
+             ClosedLoop([sc], "proposed", threads=1, residual_filter="barrier", plain=True)]
+    for loop in loops:  # each compiled (or loaded) and run once, so its cache is written
+        loop.advance(10)
+    ClosedLoop([sc], "proposed", threads=1).advance(10)
+    for loop in loops:
+        assert Path(loop._kernel._cache._cache_file._index_path).is_file(), loop._kernel.__name__

@@ -167,7 +167,7 @@ def test_a_complete_run_writes_the_manifest_last_listing_every_file(tmp_path, mo
 def test_an_interrupted_run_keeps_its_finished_records_and_says_incomplete(tmp_path, capsys, monkeypatch):
     import agents.evaluate as ev
 
-    real = ev.evaluate_controller
+    real = ev.controller_episodes
     calls = []
 
     def interrupt_second(*a, **k):
@@ -176,7 +176,7 @@ def test_an_interrupted_run_keeps_its_finished_records_and_says_incomplete(tmp_p
             raise KeyboardInterrupt
         return real(*a, **k)
 
-    monkeypatch.setattr(ev, "evaluate_controller", interrupt_second)
+    monkeypatch.setattr(ev, "controller_episodes", interrupt_second)
     out = tmp_path / "out"
     args = list(TINY)
     args.insert(args.index("paper-0.1hz") + 1, "paper-0.5hz")  # two records; stopped in the second
