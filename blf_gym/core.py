@@ -330,6 +330,67 @@ def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
         raise ValueError(f"unknown argument(s) {unknown} for PlanarBLF; accepted: {accepted}")
 
 
+LAW_CHUNK = 200
+"""Most 1 ms samples of the score term's reference law simulated in one go once a run has grown
+(it starts with what the episode's first step needs and doubles): about 15 agent steps' worth of
+simulation at the default 10 ms. The rewards do not depend on it: the running sums keep the
+1000-sample grouping they have always had."""
+
+
+class _LawRun:
+    """The score term's reference law for a group of arms reset together: a ClosedLoop of the
+    distinct noise-free scenarios, advanced :data:`LAW_CHUNK` samples at a time, with each row's
+    running sum of e1^2. ``arms[r]`` holds the env arms that read row r (an arm leaves when it is
+    reset). The running sum is grouped in blocks of 1000 samples from the episode's start (within a
+    block, a sequential sum from the block's start; then the total at the block's start added), so
+    the values are the same to the bit whatever the chunk size."""
+
+    def __init__(self, loop: ClosedLoop, keys: list, arms: list, samples: int, n: int) -> None:
+        self.loop = loop
+        self.keys = keys
+        self.arms = [set(a) for a in arms]
+        self.samples = samples
+        self.h = 0
+        rows = loop.N
+        self._inner = np.zeros((rows, n))  # sum since the current 1000-sample block began
+        self._acc = np.zeros((rows, n))    # the running sum at that block's start
+        self._e1 = CHANNELS.index("e1")
+
+    def restart(self, keys: list, arms: list) -> None:
+        """Reuse this run's loop (same number of rows) for new scenarios and arms, from the start."""
+        self.loop.set_scenarios(keys)
+        self.keys = keys
+        self.arms = [set(a) for a in arms]
+        self.h = 0
+        self._inner[:] = 0.0
+        self._acc[:] = 0.0
+
+    def detach(self, i: int) -> None:
+        for a in self.arms:
+            a.discard(i)
+
+    def advance(self, want: int = LAW_CHUNK) -> tuple[int, int, np.ndarray]:
+        """Simulate at least ``want`` more samples (within the block of 1000 and the episode), and at
+        least as many as so far up to :data:`LAW_CHUNK` (a run grows geometrically: an episode that
+        ends after a step or two pays for those steps only); return (h0, h1, the running sums of
+        samples h0..h1-1 per row, (rows, h1 - h0, n))."""
+        h0 = self.h
+        m = min(max(want, min(h0, LAW_CHUNK)), self.samples - h0, 1000 - h0 % 1000)
+        rec, nrec, _ = self.loop.advance(m * self.loop.steps_per_sample, record_samples=m)
+        e2 = rec[:, :m, self._e1, :] ** 2
+        for r in range(e2.shape[0]):
+            e2[r, nrec[r]:] = np.inf  # the law stopped (it diverged): its error counts as unbounded
+        e2[~np.isfinite(e2)] = np.inf
+        if h0 % 1000 == 0:
+            self._acc = self._inner + self._acc if h0 else self._acc
+            local = np.cumsum(e2, axis=1)
+        else:
+            local = np.cumsum(np.concatenate([self._inner[:, None, :], e2], axis=1), axis=1)[:, 1:]
+        self._inner = local[:, -1].copy()
+        self.h = h0 + m
+        return h0, self.h, local + self._acc[:, None, :]
+
+
 class EnvCore:
     """N arms of the PlanarBLF task stepped together by one compiled kernel call.
 
@@ -525,6 +586,10 @@ class EnvCore:
         self._score_w = float(self.weights.score)
         self._law_cum = np.zeros((N, self.base.sim.n_samples if self._score_w > 0 else 0, n))
         self._cum_cache: dict[Scenario, np.ndarray] = {}
+        self._law_run: list[_LawRun | None] = [None] * N  # each arm's lazily extended reference run
+        self._law_h = np.zeros(N, dtype=np.int64)  # samples of _law_cum filled so far, per arm
+        self._ref_law: Controller | None = None
+        self._idle_runs: list[_LawRun] = []  # reference runs whose loops a later reset may reuse
         self._phi = np.zeros(N)
         self._score_term = np.zeros(N)
         self._threads = threads
@@ -617,7 +682,7 @@ class EnvCore:
         if self.weights.relative:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
         if self._score_w > 0:
-            self._law_cum[list(idx)] = self.law_cumulative(scs)
+            self._start_law(idx, scs)
         for i in idx:
             self._phi[i] = 0.0
             self.steps[i] = 0
@@ -636,7 +701,7 @@ class EnvCore:
         todo = list(dict.fromkeys(k for k in keys if k not in cache))
         if not todo:
             return keys, todo, None
-        ref = self.controller if self.residual else make_controller("proposed")
+        ref = self._reference_law()
         return keys, todo, ClosedLoop(todo, ref, self.observer, threads=self._threads)
 
     def law_level(self, scenarios: Sequence[Scenario]) -> tuple[np.ndarray, np.ndarray]:
@@ -676,35 +741,85 @@ class EnvCore:
             return spec
         return replace(spec, max_episode_steps=int(self.max_episode_steps))
 
+    def _reference_law(self) -> Controller:
+        """The reward's reference law: the inner controller in residual mode, the proposed law in
+        plain mode (made once: a registry look-up reads the installed packages' entry points)."""
+        if self._ref_law is None:
+            self._ref_law = self.controller if self.residual else make_controller("proposed")
+        return self._ref_law
+
+    def _start_law(self, idx: Sequence[int], scenarios: Sequence[Scenario]) -> None:
+        """Start the score term's reference for the reset arms ``idx``: the reference law alone on
+        each one's scenario without noise (as :meth:`law_level`), whose running sums of e1^2 per
+        joint fill ``_law_cum`` lazily, as the episode reaches them (:meth:`_extend_law`, in chunks
+        that double up to :data:`LAW_CHUNK` samples). A reset simulates nothing (it used to simulate
+        the whole episode, 0.3-0.6 s per new scenario); a scenario whose whole run is cached costs
+        nothing at all."""
+        S = self._law_cum.shape[1]
+        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
+        todo: dict[Scenario, list[int]] = {}
+        for i, key in zip(idx, keys):
+            old = self._law_run[i]
+            if old is not None:
+                old.detach(i)
+            hit = self._cum_cache.get(key)
+            if hit is not None:
+                self._law_cum[i] = hit
+                self._law_h[i] = S
+                self._law_run[i] = None
+            else:
+                todo.setdefault(key, []).append(int(i))
+        if not todo:
+            return
+        run = next((r for r in self._idle_runs if r.loop.N == len(todo) and not any(r.arms)), None)
+        if run is not None:  # a finished or abandoned run of the same size: its loop is reused
+            run.restart(list(todo), list(todo.values()))
+        else:
+            run = _LawRun(ClosedLoop(list(todo), self._reference_law(), self.observer, threads=self._threads),
+                          list(todo), list(todo.values()), S, self.n)
+            if len(self._idle_runs) < 4:
+                self._idle_runs.append(run)
+        for row in run.arms:
+            for i in row:
+                self._law_run[i] = run
+                self._law_h[i] = 0
+
+    def _extend_law(self, run: "_LawRun", want: int) -> None:
+        """Advance a reference run by at least ``want`` samples (:meth:`_LawRun.advance`) and write
+        the new running sums into its arms' rows of ``_law_cum``; a run that reaches the episode's
+        end is cached (up to 16 scenarios)."""
+        h0, h1, cum = run.advance(want)
+        for r, arms in enumerate(run.arms):
+            for i in arms:
+                self._law_cum[i, h0:h1] = cum[r]
+                self._law_h[i] = h1
+        if h1 == run.samples:
+            for r, arms in enumerate(run.arms):
+                key = run.keys[r]
+                if arms and len(self._cum_cache) < 16 and key not in self._cum_cache:
+                    self._cum_cache[key] = self._law_cum[next(iter(arms))].copy()
+            for arms in run.arms:
+                for i in arms:
+                    self._law_run[i] = None
+            run.arms = [set() for _ in run.arms]
+
     def law_cumulative(self, scenarios: Sequence[Scenario]) -> np.ndarray:
         """The reference law alone on each scenario, without noise (as :meth:`law_level`): each
         joint's running sum of e1^2 (rad^2) through every 1 ms sample of the episode,
-        (len(scenarios), samples, n), for the score term. A non-finite error counts as +inf. Each
-        distinct scenario is simulated once."""
+        (len(scenarios), samples, n), the score term's reference, computed whole (the env itself
+        computes it lazily, chunk by chunk, to the same bits). A non-finite error, and every sample
+        after the law's run stopped (it diverged), count as +inf."""
         S = self._law_cum.shape[1]
-        keys, todo, loop = self._reference_runs(scenarios, self._cum_cache)
-        done: dict[Scenario, np.ndarray] = {}
-        if loop is not None:
-            sps, e1c = loop.steps_per_sample, CHANNELS.index("e1")
-            cum = np.empty((len(todo), S, self.n))
-            acc = np.zeros((len(todo), self.n))
-            s0 = 0
-            while s0 < S:  # in chunks, so the record stays small for a batch of long episodes
-                m = min(1000, S - s0)
-                rec, _, _ = loop.advance(m * sps, record_samples=m)
-                e2 = rec[:, :m, e1c, :] ** 2
-                e2[~np.isfinite(e2)] = np.inf
-                cum[:, s0 : s0 + m] = np.cumsum(e2, axis=1) + acc[:, None, :]
-                acc = cum[:, s0 + m - 1]
-                s0 += m
-            for i, sc in enumerate(todo):
-                done[sc] = cum[i]
-                if len(self._cum_cache) < 16:
-                    self._cum_cache[sc] = cum[i].copy()
-        out = np.empty((len(scenarios), S, self.n))
-        for k, sc in enumerate(keys):
-            out[k] = done[sc] if sc in done else self._cum_cache[sc]
-        return out
+        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
+        todo = list(dict.fromkeys(keys))
+        ref = self._reference_law()
+        run = _LawRun(ClosedLoop(todo, ref, self.observer, threads=self._threads), todo, [set() for _ in todo], S,
+                      self.n)
+        out = np.empty((len(todo), S, self.n))
+        while run.h < S:
+            h0, h1, cum = run.advance(LAW_CHUNK)
+            out[:, h0:h1] = cum
+        return out[[todo.index(k) for k in keys]]
 
     # ------------------------------------------------------------------ step
     def check_actions(self, actions: Any) -> np.ndarray:
@@ -767,6 +882,12 @@ class EnvCore:
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         if self._score_w > 0:
+            # the reference is extended where the episode got to (an arm stepped past its end, as the
+            # vector env's next-step autoreset does before resetting it, reads the last sample)
+            ns = np.minimum(self._ep_f[:, EP_SAMPLES], self._law_cum.shape[1])
+            for i in np.flatnonzero(ns > self._law_h):
+                while ns[i] > self._law_h[i]:
+                    self._extend_law(self._law_run[i], int(ns[i] - self._law_h[i]))
             score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
                        self._score_w, rewards, self._score_term)
         terminated = res[_R_TERMINATED] > 0.0
