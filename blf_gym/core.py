@@ -752,9 +752,9 @@ class EnvCore:
         """Start the score term's reference for the reset arms ``idx``: the reference law alone on
         each one's scenario without noise (as :meth:`law_level`), whose running sums of e1^2 per
         joint fill ``_law_cum`` lazily, as the episode reaches them (:meth:`_extend_law`, in chunks
-        that double up to :data:`LAW_CHUNK` samples). A reset simulates nothing (it used to simulate
-        the whole episode, 0.3-0.6 s per new scenario); a scenario whose whole run is cached costs
-        nothing at all."""
+        that double up to :data:`LAW_CHUNK` samples). With a suite, a reset simulates nothing (it
+        used to simulate the whole episode, 0.3-0.6 s per new scenario); a fixed scenario's reference
+        is simulated whole at its first reset and cached; a cached scenario costs nothing."""
         S = self._law_cum.shape[1]
         keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
         todo: dict[Scenario, list[int]] = {}
@@ -783,6 +783,12 @@ class EnvCore:
             for i in row:
                 self._law_run[i] = run
                 self._law_h[i] = 0
+        if not self.suite:
+            # a fixed scenario repeats: its reference is simulated whole once, then served from the
+            # cache, so its steps carry none of it (a suite draws a new scenario at every reset, and
+            # there the reference comes lazily, with the episode)
+            while run.h < S:
+                self._extend_law(run, LAW_CHUNK)
 
     def _extend_law(self, run: "_LawRun", want: int) -> None:
         """Advance a reference run by at least ``want`` samples (:meth:`_LawRun.advance`) and write

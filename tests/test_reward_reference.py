@@ -84,3 +84,8 @@ def test_a_repeated_scenario_reuses_its_whole_reference():
             assert rewards == first
     env.reset(seed=0)
     assert core._law_h[0] == core._law_cum.shape[1]  # served whole from the cache
+    # a fixed scenario's reference is simulated whole at its first reset (once; the steps then carry
+    # none of it), a suite's comes with the episode
+    fresh = gym.make("PlanarBLFResidual-v0", scenario="paper-0.5hz", duration=0.5).unwrapped
+    fresh.reset(seed=0)
+    assert fresh.core._law_h[0] == fresh.core._law_cum.shape[1]
