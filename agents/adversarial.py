@@ -60,8 +60,8 @@ def run(presets: Sequence[str] = ("paper-0.1hz", "paper-0.5hz"), suite_seeds: Se
         threads: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Every sequence on every group, filtered and not: per (sequence, group, filter) the share of
     certificate breaks, failures, filter breaches and episodes where an assumption failed."""
-    from agents.evaluate import build_scenarios, evaluate_agent, law_reference
-    from blf_gym.metrics import summarize
+    from agents.evaluate import agent_episodes, build_scenarios, law_reference
+    from blf_gym.metrics import episode_stats, summarize
 
     groups = build_scenarios(list(presets), list(suite_seeds), {}, None, ["randomized", "stress"])
     labels = [label for label, scs in groups for _ in scs]
@@ -80,20 +80,21 @@ def run(presets: Sequence[str] = ("paper-0.1hz", "paper-0.5hz"), suite_seeds: Se
     for name, actions in seqs.items():
         for filt in (None, "barrier"):
             m = {"mode": "residual", "env_kwargs": {**ENV_KWARGS, "residual_filter": filt}}
-            trajs = evaluate_agent(_Replay(actions), m, None, scenarios, threads)
+            # each episode reduced as it comes (its stats and the filter's counters), no signals kept
+            eps = [(episode_stats(t), t.filter_breaches, t.assumption_failures, t.step_violations > 0 or t.diverged)
+                   for t in agent_episodes(_Replay(actions), m, None, scenarios, threads)]
             for label, _ in groups:
                 idx = [i for i, lab in enumerate(labels) if lab == label]
-                rec = summarize([trajs[i] for i in idx], name, "residual", label, scenarios[0].sim.dt,
+                rec = summarize([eps[i][0] for i in idx], name, "residual", label, scenarios[0].sim.dt,
                                 law=[law[i] for i in idx])
                 rows.append({
                     "sequence": name, "group": label, "filter": filt or "none", "episodes": len(idx),
                     "certificate_broken": rec["certificate_broken"], "failure_rate": rec["failure_rate"],
                     "law_failure_rate": rec["law_failure_rate"],
-                    "filter_breaches": int(sum(trajs[i].filter_breaches for i in idx)),
-                    "assumptions_failed_episodes": int(sum(trajs[i].assumption_failures > 0 for i in idx)),
-                    "failed_with_assumptions_held": int(sum(
-                        (trajs[i].step_violations > 0 or trajs[i].diverged) and trajs[i].assumption_failures == 0
-                        for i in idx)) if filt else None,
+                    "filter_breaches": int(sum(eps[i][1] for i in idx)),
+                    "assumptions_failed_episodes": int(sum(eps[i][2] > 0 for i in idx)),
+                    "failed_with_assumptions_held": int(sum(eps[i][3] and eps[i][2] == 0 for i in idx))
+                    if filt else None,
                 })
             if bar is not None:
                 bar.update(1)
@@ -112,10 +113,10 @@ def tradeoff(agent: str | Path, suite_seeds: Sequence[int] = (20, 50), threads: 
     """A trained agent run through the barrier filter at several margins m0 without retraining, and
     without the filter: score_vs_law and certificate_broken per group (presets, training suite,
     stress suite). A report: the shipped filter's margins were fixed before it was run."""
-    from agents.evaluate import build_scenarios, evaluate_agent, law_reference
+    from agents.evaluate import agent_episodes, build_scenarios, law_reference
     from agents.loading import load_agent
     from baselines.filters import barrier_filter
-    from blf_gym.metrics import summarize
+    from blf_gym.metrics import episode_stats, summarize
 
     model, meta, norm = load_agent(agent)
     groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], list(suite_seeds), {}, None, ["randomized", "stress"])
@@ -132,10 +133,10 @@ def tradeoff(agent: str | Path, suite_seeds: Sequence[int] = (20, 50), threads: 
         bar = tqdm(total=len(variants), unit="run", desc="trade-off", file=sys.stderr, leave=False)
     for name, filt in variants:
         m = {**meta, "env_kwargs": {**meta["env_kwargs"], "residual_filter": filt}}
-        trajs = evaluate_agent(model, m, norm, scenarios, threads)
+        stats = [episode_stats(t) for t in agent_episodes(model, m, norm, scenarios, threads)]
         for label, _ in groups:
             idx = [i for i, lab in enumerate(labels) if lab == label]
-            rec = summarize([trajs[i] for i in idx], meta.get("name", "agent"), meta["mode"], label,
+            rec = summarize([stats[i] for i in idx], meta.get("name", "agent"), meta["mode"], label,
                             scenarios[0].sim.dt, law=[law[i] for i in idx])
             rows.append({"filter": name, "group": label, "episodes": len(idx), "score_vs_law": rec["score_vs_law"],
                          "certificate_broken": rec["certificate_broken"], "failure_rate": rec["failure_rate"],

@@ -127,9 +127,11 @@ CONTROLLER_BATCH = 16
 """Episodes a baseline controller runs at once on the inner path (its arms are independent, so the
 results do not depend on it; it bounds the memory of their 1 ms records)."""
 AGENT_BATCH = 50
-"""Episodes an agent steps at once, in one batched env. An agent's actions come from one batched
-network call per step, and a batch of another size may round differently in the last bits, so it
-is the protocol's largest group (50 stress episodes): each of the protocol's groups is one batch."""
+"""Most episodes an agent steps at once, in one batched env: the protocol's largest group (50 stress
+episodes), so each of the protocol's groups is one batch, as it always was. Longer lists are split
+into near-equal batches. An agent's actions come from one network call per step; measured on the
+shipped agents, torch's actions for a row are the same to the bit for any batch of 7 to 200 rows,
+but not for a batch of one row, so no batch is left with a single episode of a longer list."""
 
 
 def controller_episodes(name: str, scenarios: Sequence[Scenario], threads: int | None = None,
@@ -173,8 +175,10 @@ def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     steps = {sc.sim.duration for sc in scenarios}
     if len(steps) > 1:
         raise ValueError("all evaluation scenarios of an agent must share one duration")
-    for lo in range(0, len(scenarios), batch):
-        part = list(scenarios[lo : lo + batch])
+    parts = -(-len(scenarios) // batch)  # near-equal batches: none of one episode unless all are
+    edges = np.linspace(0, len(scenarios), parts + 1).round().astype(int) if scenarios else [0]
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        part = list(scenarios[lo:hi])
         core = EnvCore(len(part), record=True, terminate_on_violation=False, threads=threads, **kw)
         for i in range(len(part)):
             core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
@@ -290,6 +294,15 @@ def _law_rmse(records: Sequence[dict[str, Any]], r: dict[str, Any]) -> list[floa
         if x["policy"] == "proposed" and x["kind"] == "baseline" and x["scenario"] == r["scenario"]:
             return x["rmse_deg"] if all(v is not None for v in x["rmse_deg"]) else None
     return None
+
+
+class _PlotTrace:
+    """What the plots draw of a group's first episode (time, error, bounds, torque), kept instead of
+    the whole trajectory: a third of its memory, for every policy and group."""
+
+    def __init__(self, tr: Any) -> None:
+        self.t, self.e1, self.k_a, self.k_b, self.u = tr.t, tr.e1, tr.k_a, tr.k_b, tr.u
+        self.n_samples = tr.n_samples
 
 
 def _table(records: Sequence[dict[str, Any]]) -> str:
@@ -497,7 +510,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 stats, first = [], []
                 for k, tr in enumerate(episodes):
                     if k == 0 and want_first:
-                        first.append(tr)
+                        first.append(_PlotTrace(tr))
                     if args.save_traj:
                         path = args.out / "traj" / f"{label}__{name}__{k}.npz"
                         tr.save_npz(path)

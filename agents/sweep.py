@@ -86,11 +86,12 @@ def law_levels(suite_seeds: int, duration: float | None = None, controller: str 
     """RMSE (deg, per joint) of a baseline controller on the learning-curve scenarios."""
     from blf_gym.metrics import summarize
 
-    from .evaluate import build_scenarios, evaluate_controller
+    from .evaluate import build_scenarios, controller_episodes
 
     out = {}
     for label, scs in build_scenarios(["paper-0.1hz", "paper-0.5hz"], suite_seeds, {}, duration):
-        rec = summarize(evaluate_controller(controller, scs, threads=1), controller, "baseline", label, scs[0].sim.dt)
+        # episodes reduced as they come (summarize consumes the generator): memory does not grow with them
+        rec = summarize(controller_episodes(controller, scs, threads=1), controller, "baseline", label, scs[0].sim.dt)
         out[label] = [float(v) for v in rec["rmse_deg"]]
     return out
 

@@ -148,7 +148,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
     from blf_gym.metrics import summarize
 
-    from .evaluate import build_scenarios, evaluate_agent
+    from .evaluate import agent_episodes, build_scenarios
 
     path = out / "eval" / "curve.json"
     groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], suite_seeds, {}, env_kwargs.get("duration"))
@@ -170,8 +170,9 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
             norm = env if isinstance(env, VecNormalize) else None
             point: dict[str, Any] = {"timesteps": int(self.num_timesteps), "wall_s": round(clock.model(), 1)}
             for label, scs in groups:
-                trajs = evaluate_agent(self.model, meta, norm, scs, threads=1)
-                rec = summarize(trajs, meta["name"], meta["mode"], label, scs[0].sim.dt)
+                # episodes reduced as they come: memory does not grow with the curve's episodes
+                rec = summarize(agent_episodes(self.model, meta, norm, scs, threads=1), meta["name"], meta["mode"],
+                                label, scs[0].sim.dt)
                 point[label] = {k: rec[k] for k in ("rmse_deg", "violations", "failure_rate", "diverged")}
             self.points.append(point)
             atomic_write_json(path, {"env_kwargs": env_kwargs, "suite_seeds": suite_seeds,
