@@ -227,6 +227,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"adversarial: error: {os_error_message(exc, args.out)}", file=sys.stderr)
         return 2
     if args.tradeoff is not None:
+        import torch
+
+        torch.set_num_threads(1)  # a small network on a batch of episodes: more threads only wait (blf-eval)
         seeds = args.suite_seeds if args.suite_seeds != [10, 20] else [20, 50]
         res = tradeoff(args.tradeoff, seeds, args.threads, progress=not args.no_progress)
         args.out.mkdir(parents=True, exist_ok=True)

@@ -430,6 +430,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
                        else [Path(a) for a in args.agents])
+        if agent_paths:
+            # torch on one thread: an agent's network on a batch of 50 rows gains nothing from more,
+            # and its idle threads beside the env's (and any other job) made each call 100 times
+            # slower under load; the actions are the same to the bit on one thread or two
+            import torch
+
+            torch.set_num_threads(1)
         agents = [(p, *load_agent(p)) for p in agent_paths]
         if args.residual_filter is not None:
             agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
