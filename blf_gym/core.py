@@ -309,7 +309,7 @@ def warn_if_oversubscribed(env_threads: int, owner: str) -> None:
     if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
         return
     t = int(torch.get_num_threads())
-    if t + env_threads > cpus:
+    if t > max(1, cpus - env_threads):  # torch has more threads than the cores the env leaves it
         import gymnasium as gym
 
         _WARNED.append(True)
