@@ -809,6 +809,14 @@ class EnvCore:
                     self._law_run[i] = None
             run.arms = [set() for _ in run.arms]
 
+    def _catch_up_law(self) -> None:
+        """Extend the reference where the episodes got past it (an arm stepped past its end, as the
+        vector env's next-step autoreset does before resetting it, reads the last sample)."""
+        ns = np.minimum(self._ep_f[:, EP_SAMPLES], self._law_cum.shape[1])
+        for i in np.flatnonzero(ns > self._law_h):
+            while ns[i] > self._law_h[i]:
+                self._extend_law(self._law_run[i], int(ns[i] - self._law_h[i]))
+
     def law_cumulative(self, scenarios: Sequence[Scenario]) -> np.ndarray:
         """The reference law alone on each scenario, without noise (as :meth:`law_level`): each
         joint's running sum of e1^2 (rad^2) through every 1 ms sample of the episode,
@@ -888,12 +896,8 @@ class EnvCore:
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         if self._score_w > 0:
-            # the reference is extended where the episode got to (an arm stepped past its end, as the
-            # vector env's next-step autoreset does before resetting it, reads the last sample)
-            ns = np.minimum(self._ep_f[:, EP_SAMPLES], self._law_cum.shape[1])
-            for i in np.flatnonzero(ns > self._law_h):
-                while ns[i] > self._law_h[i]:
-                    self._extend_law(self._law_run[i], int(ns[i] - self._law_h[i]))
+            if (self._ep_f[:, EP_SAMPLES] > self._law_h).any():  # one comparison on the common path
+                self._catch_up_law()
             score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
                        self._score_w, rewards, self._score_term)
         terminated = res[_R_TERMINATED] > 0.0
