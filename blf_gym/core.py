@@ -588,6 +588,7 @@ class EnvCore:
         self._cum_cache: dict[Scenario, np.ndarray] = {}
         self._law_run: list[_LawRun | None] = [None] * N  # each arm's lazily extended reference run
         self._law_h = np.zeros(N, dtype=np.int64)  # samples of _law_cum filled so far, per arm
+        self._law_partial = False  # some arm's reference is not complete yet (else a step checks nothing)
         self._ref_law: Controller | None = None
         self._idle_runs: list[_LawRun] = []  # reference runs whose loops a later reset may reuse
         self._phi = np.zeros(N)
@@ -770,6 +771,7 @@ class EnvCore:
             else:
                 todo.setdefault(key, []).append(int(i))
         if not todo:
+            self._law_partial = bool((self._law_h < S).any())
             return
         run = next((r for r in self._idle_runs if r.loop.N == len(todo) and not any(r.arms)), None)
         if run is not None:  # a finished or abandoned run of the same size: its loop is reused
@@ -789,6 +791,7 @@ class EnvCore:
             # there the reference comes lazily, with the episode)
             while run.h < S:
                 self._extend_law(run, LAW_CHUNK)
+        self._law_partial = bool((self._law_h < S).any())
 
     def _extend_law(self, run: "_LawRun", want: int) -> None:
         """Advance a reference run by at least ``want`` samples (:meth:`_LawRun.advance`) and write
@@ -799,6 +802,7 @@ class EnvCore:
             for i in arms:
                 self._law_cum[i, h0:h1] = cum[r]
                 self._law_h[i] = h1
+        self._law_partial = bool((self._law_h < run.samples).any())
         if h1 == run.samples:
             for r, arms in enumerate(run.arms):
                 key = run.keys[r]
@@ -896,7 +900,7 @@ class EnvCore:
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
         rewards = res[_R_REWARD]
         if self._score_w > 0:
-            if (self._ep_f[:, EP_SAMPLES] > self._law_h).any():  # one comparison on the common path
+            if self._law_partial and (self._ep_f[:, EP_SAMPLES] > self._law_h).any():
                 self._catch_up_law()
             score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
                        self._score_w, rewards, self._score_term)
