@@ -47,7 +47,7 @@ from blf_gym.metrics import EpisodeStats, episode_stats, summarize, write_result
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
-from .loading import load_agent  # the one agent loader, re-exported here
+from .loading import load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
 
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes", "law_reference",
            "build_scenarios", "load_agent"]
@@ -163,15 +163,9 @@ def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     over, so a caller that reduces them keeps at most one batch of records."""
     from blf_gym.core import EnvCore
 
-    kw = dict(meta["env_kwargs"])
-    # the scenarios are given; the reward is not needed (a relative one would simulate the law);
-    # termination is always off here, whatever the agent was trained with
-    for k in ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
-              "terminate_on_violation"):
-        kw.pop(k, None)
-    # a reward that needs no run of the law (the score and relative terms each simulate it per
-    # scenario); the metrics do not use the reward
-    kw["reward_weights"] = {}
+    # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
+    # the same env the loader checked the agent against
+    kw = scoring_env_kwargs(meta["env_kwargs"])
     steps = {sc.sim.duration for sc in scenarios}
     if len(steps) > 1:
         raise ValueError("all evaluation scenarios of an agent must share one duration")
@@ -179,7 +173,7 @@ def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
     edges = np.linspace(0, len(scenarios), parts + 1).round().astype(int) if scenarios else [0]
     for lo, hi in zip(edges[:-1], edges[1:]):
         part = list(scenarios[lo:hi])
-        core = EnvCore(len(part), record=True, terminate_on_violation=False, threads=threads, **kw)
+        core = EnvCore(len(part), record=True, threads=threads, **kw)
         for i in range(len(part)):
             core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
         core.reset_envs(range(len(part)), scenarios=part)
