@@ -828,11 +828,8 @@ class EnvCore:
         computes it lazily, chunk by chunk, to the same bits). A non-finite error, and every sample
         after the law's run stopped (it diverged), count as +inf."""
         S = self._law_cum.shape[1]
-        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
-        todo = list(dict.fromkeys(keys))
-        ref = self._reference_law()
-        run = _LawRun(ClosedLoop(todo, ref, self.observer, threads=self._threads), todo, [set() for _ in todo], S,
-                      self.n)
+        keys, todo, loop = self._reference_runs(scenarios, {})
+        run = _LawRun(loop, todo, [set() for _ in todo], S, self.n)
         out = np.empty((len(todo), S, self.n))
         while run.h < S:
             h0, h1, cum = run.advance(LAW_CHUNK)
