@@ -15,3 +15,18 @@ except ImportError:  # the agents' extra is not installed: nothing to set
     pass
 else:
     torch.set_num_threads(1)
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=True)
+def _own_law_cache(tmp_path_factory, monkeypatch):
+    """Each test starts with an empty cache of the law's episodes (agents/lawcache.py) of its own, so
+    that blf-eval's reuse of one test's law runs never changes what another test sees."""
+    try:
+        import agents.lawcache as lawcache
+    except ImportError:  # the agents' dependencies are not installed
+        return
+    folder = tmp_path_factory.mktemp("law")
+    monkeypatch.setattr(lawcache, "_folder", lambda: folder)

@@ -47,9 +47,11 @@ from blf_gym.metrics import EpisodeStats, episode_stats, summarize, write_result
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
+from .lawcache import law_key, load_law, store_law
 from .loading import load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
 
-__all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes", "law_reference",
+__all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes", "agent_group_episodes",
+           "law_env_kwargs", "law_reference", "law_reference_groups",
            "build_scenarios", "load_agent"]
 
 
@@ -155,35 +157,146 @@ def evaluate_controller(name: str, scenarios: Sequence[Scenario], threads: int |
     return list(controller_episodes(name, scenarios, threads, observer))
 
 
-def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
-                   threads: int | None = None, batch: int = AGENT_BATCH) -> Iterator[Any]:
-    """A trained agent's trajectories, one per scenario, in order: ``batch`` episodes stepped
-    together in one batched env at a time (episode i draws its noise from
-    ``default_rng(EVAL_SEED_OFFSET + i)``). Each trajectory's record is released as it is handed
-    over, so a caller that reduces them keeps at most one batch of records."""
+class _Actor:
+    """An agent's deterministic actions on a batch of observations: the first value of
+    ``model.predict(obs, deterministic=True)``, bit for bit, at a fraction of its cost.
+
+    ``predict`` costs about 0.26 ms a call on one row and 0.42 ms on 20 rows here, on one torch
+    thread, most of it not the network: it switches every module to evaluation mode, checks the input
+    and builds a torch ``Normal`` distribution (with its argument validation) to return its mean.
+    Evaluation calls it once per group and step, 12,000 times per agent on the protocol, so that
+    overhead was the largest share of an agent's cost after the physics. Here:
+
+    * an SB3 actor-critic policy with a diagonal Gaussian (PPO's, PPO-Lagrangian's), whose
+      ``get_distribution`` is SB3's own, gives the mean its distribution would return: the features,
+      the actor's latent, ``action_net``, clipped to the action space (0.08 and 0.16 ms);
+    * any other SB3 policy on Box spaces goes through its ``_predict`` (the path ``predict`` takes),
+      with the mode switched once and the actions unscaled or clipped as ``predict`` does;
+    * any other model (a plug-in algorithm's) is asked through its ``predict``.
+
+    ``tests/test_eval_batching.py`` checks the bits against ``predict`` on every shipped agent."""
+
+    def __init__(self, model: Any) -> None:
+        from gymnasium import spaces
+
+        self.model = model
+        pol = getattr(model, "policy", None)
+        ok = (pol is not None and callable(getattr(pol, "_predict", None))
+              and isinstance(getattr(pol, "observation_space", None), spaces.Box)
+              and isinstance(getattr(pol, "action_space", None), spaces.Box)
+              and len(pol.observation_space.shape) == 1)
+        self.policy = pol if ok else None
+        self.mean = False
+        if ok:
+            from stable_baselines3.common.distributions import DiagGaussianDistribution
+            from stable_baselines3.common.policies import ActorCriticPolicy
+
+            cls = type(pol)
+            self.mean = (isinstance(pol, ActorCriticPolicy) and isinstance(pol.action_dist, DiagGaussianDistribution)
+                         and not pol.squash_output
+                         and all(getattr(cls, m) is getattr(ActorCriticPolicy, m)
+                                 for m in ("_predict", "get_distribution", "_get_action_dist_from_latent")))
+            pol.set_training_mode(False)
+
+    def __call__(self, obs: np.ndarray) -> np.ndarray:
+        pol = self.policy
+        if pol is None:
+            return self.model.predict(obs, deterministic=True)[0]
+        import torch
+
+        space = pol.action_space
+        x = torch.as_tensor(np.array(obs).reshape((-1, *pol.observation_space.shape)), device=pol.device)
+        with torch.inference_mode():
+            if self.mean:
+                from stable_baselines3.common.policies import BaseModel
+
+                features = BaseModel.extract_features(pol, x, pol.pi_features_extractor)
+                actions = pol.action_net(pol.mlp_extractor.forward_actor(features))
+            else:
+                actions = pol._predict(x, deterministic=True)
+        actions = actions.cpu().numpy().reshape((-1, *space.shape))
+        if pol.squash_output:
+            return pol.unscale_action(actions)
+        return np.clip(actions, space.low, space.high)
+
+
+def _batch_plan(groups: Sequence[Sequence[Scenario]], batch: int) -> list[list[tuple[int, int, int]]]:
+    """How :func:`agent_group_episodes` steps ``groups``: a list of batches, each a list of parts
+    ``(group, lo, hi)``. A group longer than ``batch`` is split into near-equal parts (none of one
+    episode unless the group has one); consecutive parts of one duration share a batch while it
+    holds at most ``batch`` episodes."""
+    plan: list[list[tuple[int, int, int]]] = []
+    size, dur = 0, None
+    for g, scs in enumerate(groups):
+        if not scs:
+            continue
+        parts = -(-len(scs) // batch)
+        edges = np.linspace(0, len(scs), parts + 1).round().astype(int)
+        for lo, hi in zip(edges[:-1], edges[1:]):
+            d = scs[0].sim.duration
+            if not plan or size + (hi - lo) > batch or d != dur:
+                plan.append([])
+                size, dur = 0, d
+            plan[-1].append((g, int(lo), int(hi)))
+            size += int(hi - lo)
+    return plan
+
+
+def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Sequence[Sequence[Scenario]],
+                         threads: int | None = None, batch: int = AGENT_BATCH,
+                         on_batch: Any = None) -> Iterator[tuple[int, Any]]:
+    """A trained agent's trajectories on several groups of scenarios: ``(group index, trajectory)``,
+    each group's episodes in order, the groups in order.
+
+    Episode i of a group draws its noise from ``default_rng(EVAL_SEED_OFFSET + i)``. The groups'
+    episodes are packed into batched envs of at most ``batch`` arms (:func:`_batch_plan`), so the
+    paper presets' single episodes ride along with a suite's instead of costing an env step each.
+    The network is still called once per group (or part of a group) per step, on that part's rows
+    alone, so every action is what it was when each group was stepped in a batch of its own (torch's
+    last bits depend on the rows of a call: one row differs from several). Each record is released as
+    its trajectory is handed over, so a caller that reduces them keeps at most one batch of records.
+    ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time."""
     from blf_gym.core import EnvCore
 
     # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
     # the same env the loader checked the agent against
     kw = scoring_env_kwargs(meta["env_kwargs"])
+    act = _Actor(model)
+    for parts in _batch_plan(groups, batch):
+        t0 = time.perf_counter()
+        scs = [sc for g, lo, hi in parts for sc in groups[g][lo:hi]]
+        core = EnvCore(len(scs), record=True, threads=threads, **kw)
+        rows, r = [], 0
+        for g, lo, hi in parts:
+            rows.append(slice(r, r + hi - lo))
+            for i in range(hi - lo):
+                core.rngs[r + i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
+            r += hi - lo
+        core.reset_envs(range(len(scs)), scenarios=scs)
+        obs = core.observe()
+        for _ in range(int(round(scs[0].sim.duration / core.control_period))):
+            o = norm.normalize_obs(obs) if norm is not None else obs
+            acts = [act(o[rs]) for rs in rows]
+            obs, *_ = core.step(acts[0] if len(acts) == 1 else np.concatenate(acts))
+        if on_batch is not None:
+            on_batch(parts, time.perf_counter() - t0)
+        r = 0
+        for g, lo, hi in parts:
+            for _ in range(hi - lo):
+                yield g, core.trajectory(r, release=True)
+                r += 1
+
+
+def agent_episodes(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
+                   threads: int | None = None, batch: int = AGENT_BATCH) -> Iterator[Any]:
+    """A trained agent's trajectories, one per scenario, in order (one group of
+    :func:`agent_group_episodes`): ``batch`` episodes stepped together in one batched env at a time,
+    episode i drawing its noise from ``default_rng(EVAL_SEED_OFFSET + i)``."""
     steps = {sc.sim.duration for sc in scenarios}
     if len(steps) > 1:
         raise ValueError("all evaluation scenarios of an agent must share one duration")
-    parts = -(-len(scenarios) // batch)  # near-equal batches: none of one episode unless all are
-    edges = np.linspace(0, len(scenarios), parts + 1).round().astype(int) if scenarios else [0]
-    for lo, hi in zip(edges[:-1], edges[1:]):
-        part = list(scenarios[lo:hi])
-        core = EnvCore(len(part), record=True, threads=threads, **kw)
-        for i in range(len(part)):
-            core.rngs[i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
-        core.reset_envs(range(len(part)), scenarios=part)
-        obs = core.observe()
-        for _ in range(int(round(part[0].sim.duration / core.control_period))):
-            o = norm.normalize_obs(obs) if norm is not None else obs
-            action, _ = model.predict(o, deterministic=True)
-            obs, *_ = core.step(action)
-        for i in range(len(part)):
-            yield core.trajectory(i, release=True)
+    for _, tr in agent_group_episodes(model, meta, norm, [scenarios], threads, batch):
+        yield tr
 
 
 def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Sequence[Scenario],
@@ -224,26 +337,62 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     return meta
 
 
+def law_env_kwargs(meta: dict[str, Any]) -> dict[str, Any]:
+    """The env arguments of an agent's law reference (:func:`law_reference`): the agent's, with the
+    proposed law as the inner controller and nothing the law alone does not use (no privileged
+    observation, residual filter or extras). Two agents with the same ones share one reference."""
+    kw = dict(meta["env_kwargs"])
+    kw["controller"] = "proposed"
+    # a zero residual is zero at any scale
+    for k in ("privileged", "residual_filter", "observation_extras", "residual_scale"):
+        kw.pop(k, None)
+    return scoring_env_kwargs(kw)
+
+
+def law_reference_groups(groups: Sequence[Sequence[Scenario]], meta: dict[str, Any] | None = None,
+                         threads: int | None = None) -> list[list[EpisodeStats]]:
+    """:func:`law_reference` for several groups of scenarios at once (on the env path, their
+    episodes share batched envs as an agent's do, :func:`agent_group_episodes`)."""
+    if meta is None:
+        return [law_reference(scs, None, threads) for scs in groups]
+    out: list[list[EpisodeStats]] = [[] for _ in groups]
+    law = {"mode": "residual", "env_kwargs": law_env_kwargs(meta)}
+    for g, tr in agent_group_episodes(_ZeroResidual(), law, None, groups, threads):
+        out[g].append(episode_stats(tr))
+    return out
+
+
 def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = None,
                   threads: int | None = None) -> list[EpisodeStats]:
     """The proposed law on the same episodes and noise as a policy's, each episode reduced to its
     :class:`blf_gym.metrics.EpisodeStats` (what ``summarize(law=...)`` reads; no signals are kept).
 
     For a baseline (``meta`` None) that is the inner path with the same noise seeds. For an agent
-    it is the env path with a zero residual over the proposed law, the agent's control period and
-    the same per-episode generators, so that the measurement noise sequence is the agent's."""
+    it is the env path with a zero residual over the proposed law (:func:`law_env_kwargs`), the
+    agent's control period and the same per-episode generators, so that the measurement noise
+    sequence is the agent's."""
     if meta is None:
         return [episode_stats(t) for t in controller_episodes("proposed", scenarios, threads)]
-    kw = dict(meta["env_kwargs"])
-    kw["controller"] = "proposed"
-    for k in ("privileged", "residual_filter", "observation_extras"):
-        kw.pop(k, None)
-    return [episode_stats(t) for t in agent_episodes(_ZeroResidual(), {"mode": "residual", "env_kwargs": kw}, None,
-                                                     scenarios, threads)]
+    return law_reference_groups([scenarios], meta, threads)[0]
+
+
+_EPILOG = """\
+common cases:
+  blf-eval                                      the whole protocol: every registered controller and
+                                                the shipped agents, on the presets, the training
+                                                suite's 20 held-out episodes and the 50 stress ones
+  blf-eval --agents runs/mine                   one new agent against the law on the whole protocol:
+                                                costs that agent (and the law, once)
+  blf-eval --agents runs/mine --suite-seeds 0   the same on the paper presets alone (seconds)
+  blf-eval --suite-seeds 0                      every controller and shipped agent, presets alone
+
+The proposed law's episodes (its own row, and the reference of every score) are kept between runs
+and reused when the code, numpy/numba, the CPU, the scenarios, the noise seeds and the env arguments
+are all the same (records say law_reused); --fresh-law simulates them again."""
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0], epilog=_EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--controllers", nargs="*", default=None, metavar="NAME",
                    help=f"baseline controllers to score on the inner path (default: every registered one, "
@@ -279,6 +428,11 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --out: also save trajectories as npz (default off)")
     p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots (default: drawn)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar (default: shown)")
+    p.add_argument("--fresh-law", action="store_true",
+                   help="simulate the proposed law's episodes (its own row and every score's reference) even "
+                        "when identical ones are kept from an earlier run: by default they are reused when the "
+                        "code, the tools, the CPU, the scenarios, the noise seeds and the env arguments are all "
+                        "the same (agents/lawcache.py), and the record's provenance says law_reused")
     return p
 
 
@@ -475,18 +629,45 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
     jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
     law_cache: dict[tuple[str, str], list[Any]] = {}
+    fresh = bool(getattr(args, "fresh_law", False))
+    seeds = {label: [EVAL_SEED_OFFSET + i for i in range(len(scs))] for label, scs in groups}
 
-    def law_for(label: str, scs: list[Scenario], meta: dict[str, Any] | None) -> list[Any]:
-        # the law on the same episodes and noise: the inner path for baselines, the agent's own
-        # env set-up (control period, noise draws) for agents
-        key = (label, "inner" if meta is None else json.dumps(
-            {k: v for k, v in meta["env_kwargs"].items() if k not in ("residual_scale", "reward_weights",
-                                                                     "privileged", "residual_filter",
-                                                                     "terminate_on_violation")},
-            sort_keys=True, default=str))
-        if key not in law_cache:
-            law_cache[key] = law_reference(scs, meta, args.threads)
-        return law_cache[key]
+    def inner_law(label: str, scs: list[Scenario]) -> tuple[list[Any], float, bool]:
+        # the proposed law with the LESO on the inner path: (episodes, their wall time, reused)
+        key = law_key("inner", "leso", scs, seeds[label])
+        hit = None if fresh else load_law(key, len(scs))
+        if hit is not None:
+            return hit[0], hit[1], True
+        t0 = time.perf_counter()
+        stats = law_reference(scs, None, args.threads)
+        wall = time.perf_counter() - t0
+        store_law(key, stats, wall)
+        return stats, wall, False
+
+    def laws_for(meta: dict[str, Any]) -> list[list[Any]]:
+        # the law on the same episodes and noise as an agent's: its env set-up (control period, noise
+        # draws), computed once for every agent that shares it, all missing groups in one go
+        kw = law_env_kwargs(meta)
+        tag = json.dumps(kw, sort_keys=True, default=str)
+        keys = {label: law_key("env", kw.get("observer", "leso"), scs, seeds[label], kw) for label, scs in groups}
+        missing = []
+        for label, scs in groups:
+            if (label, tag) in law_cache:
+                continue
+            hit = None if fresh else load_law(keys[label], len(scs))
+            if hit is not None:
+                law_cache[(label, tag)] = hit[0]
+            else:
+                missing.append((label, scs))
+        if missing:
+            t0 = time.perf_counter()
+            computed = law_reference_groups([scs for _, scs in missing], meta, args.threads)
+            total = sum(len(scs) for _, scs in missing)
+            wall = time.perf_counter() - t0
+            for (label, scs), stats in zip(missing, computed):
+                law_cache[(label, tag)] = stats
+                store_law(keys[label], stats, wall * len(scs) / total)
+        return [law_cache[(label, tag)] for label, _ in groups]
     if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
         begin_output_set(args.out, meta_out.get("command"))
     bar = None
@@ -494,48 +675,101 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         from tqdm import tqdm
 
         bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
-    results: list[tuple[dict[str, Any], list[Any]]] = []  # (record, [the group's first episode, for the plots])
+    # (job, group, record, [the group's first episode, for the plots]); the table lists them in the
+    # order of the jobs and groups, whatever order they ran in
+    results: list[tuple[int, int, dict[str, Any], list[Any]]] = []
     traj_files: list[Path] = []
     want_first = args.out is not None and not args.no_plots
+
+    def finish(j: int, name: str, kind: str, meta: Any, g: int, stats: list[Any], first: list[Any], wall: float,
+               law: list[Any], reused: bool = False) -> None:
+        label, scs = groups[g]
+        prov = _group_provenance(label, scs, kwargs)
+        if reused:  # the episodes were kept from an earlier identical run (agents/lawcache.py)
+            prov.update(law_reused=True)
+        if meta is not None:
+            prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
+                        observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
+        else:
+            prov.update(observer=args.observer)
+        rec = summarize(stats, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
+        results.append((j, g, rec, first))
+        results.sort(key=lambda r: r[:2])
+        if bar is not None:
+            bar.update(1)
+        if args.out is not None:  # finished records are kept if the run is interrupted
+            write_results([r[2] for r in results], args.out, meta_out)
+
+    def reduce(name: str, g: int, k: int, tr: Any, stats: list[Any], first: list[Any]) -> None:
+        # each episode is reduced as it comes: only the group's first is kept (for the plots), and
+        # with --save-traj each is written as it finishes, so memory does not grow with the number
+        # of episodes
+        if k == 0 and want_first:
+            first.append(_PlotTrace(tr))
+        if args.save_traj:
+            path = args.out / "traj" / f"{groups[g][0]}__{name}__{k}.npz"
+            tr.save_npz(path)
+            traj_files.append(path)
+        stats.append(episode_stats(tr))
+
+    # the proposed law's own row runs first: it is every other baseline's reference too
+    order = sorted(range(len(jobs)), key=lambda j: not (jobs[j][0] == "proposed" and jobs[j][2] is None
+                                                       and args.observer == "leso"))
     try:
-        for name, kind, agent in jobs:
-            for label, scs in groups:
-                if bar is not None:
-                    bar.set_postfix_str(f"{name} / {label}")
-                t0 = time.perf_counter()
-                episodes = (controller_episodes(name, scs, args.threads, args.observer) if agent is None
-                            else agent_episodes(*agent, scs, args.threads))
-                # each episode is reduced as it comes: only the group's first is kept (for the plots),
-                # and with --save-traj each is written as it finishes, so memory does not grow with
-                # the number of episodes
-                stats, first = [], []
-                for k, tr in enumerate(episodes):
-                    if k == 0 and want_first:
-                        first.append(_PlotTrace(tr))
-                    if args.save_traj:
-                        path = args.out / "traj" / f"{label}__{name}__{k}.npz"
-                        tr.save_npz(path)
-                        traj_files.append(path)
-                    stats.append(episode_stats(tr))
-                    del tr
-                wall = time.perf_counter() - t0
-                meta = None if agent is None else agent[1]
-                if agent is None and name == "proposed" and args.observer == "leso":
-                    law = law_cache.setdefault((label, "inner"), stats)  # the law is this row itself
-                else:
-                    law = law_for(label, scs, meta)
-                prov = _group_provenance(label, scs, kwargs)
-                if meta is not None:
-                    prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
-                                observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
-                else:
-                    prov.update(observer=args.observer)
-                rec = summarize(stats, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
-                results.append((rec, first))
-                if bar is not None:
-                    bar.update(1)
-                if args.out is not None:  # finished records are kept if the run is interrupted
-                    write_results([r for r, _ in results], args.out, meta_out)
+        for j in order:
+            name, kind, agent = jobs[j]
+            if agent is None:
+                for g, (label, scs) in enumerate(groups):
+                    if bar is not None:
+                        bar.set_postfix_str(f"{name} / {label}")
+                    stats: list[Any] = []
+                    first: list[Any] = []
+                    # the law's own row is every other row's reference: kept between runs
+                    own_law = name == "proposed" and args.observer == "leso"
+                    hit = (load_law(law_key("inner", "leso", scs, seeds[label]), len(scs))
+                           if own_law and not fresh and not args.save_traj else None)
+                    if hit is not None:
+                        stats, wall = hit
+                        if want_first:  # the plots' trace: the group's first episode alone
+                            first.append(_PlotTrace(next(controller_episodes(name, scs[:1], args.threads))))
+                    else:
+                        t0 = time.perf_counter()
+                        for k, tr in enumerate(controller_episodes(name, scs, args.threads, args.observer)):
+                            reduce(name, g, k, tr, stats, first)
+                            del tr
+                        wall = time.perf_counter() - t0
+                        if own_law:
+                            store_law(law_key("inner", "leso", scs, seeds[label]), stats, wall)
+                    if name == "proposed" and args.observer == "leso":
+                        law = law_cache.setdefault((label, "inner"), stats)  # the law is this row itself
+                    elif (label, "inner") in law_cache:
+                        law = law_cache[(label, "inner")]
+                    else:
+                        law = law_cache.setdefault((label, "inner"), inner_law(label, scs)[0])
+                    finish(j, name, kind, None, g, stats, first, wall, law, hit is not None)
+                continue
+            model, meta, norm = agent
+            if bar is not None:
+                bar.set_postfix_str(f"{name} / the law's reference")
+            laws = laws_for(meta)
+            if bar is not None:
+                bar.set_postfix_str(name)
+            # the groups' episodes share batched envs: a group's wall time is its share (by episodes)
+            # of the batches that stepped it
+            walls = [0.0] * len(groups)
+
+            def on_batch(parts: list[tuple[int, int, int]], wall_s: float) -> None:
+                total = sum(hi - lo for _, lo, hi in parts)
+                for g, lo, hi in parts:
+                    walls[g] += wall_s * (hi - lo) / total
+            per: list[tuple[list[Any], list[Any]]] = [([], []) for _ in groups]
+            for g, tr in agent_group_episodes(model, meta, norm, [scs for _, scs in groups], args.threads,
+                                              on_batch=on_batch):
+                stats, first = per[g]
+                reduce(name, g, len(stats), tr, stats, first)
+                del tr
+                if len(stats) == len(groups[g][1]):
+                    finish(j, name, kind, meta, g, stats, first, walls[g], laws[g])
     except KeyboardInterrupt:
         print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
                                            "and manifest.json marks the set incomplete" if args.out else ""),
@@ -544,7 +778,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     finally:
         if bar is not None:
             bar.close()
-    records = [r for r, _ in results]
+    records = [r[2] for r in results]
     print(_table(records))
     print("\nRMSE per joint, pooled over the group's episodes, in degrees; / law: that RMSE over the "
           "proposed law's on the same group; score: score_vs_law, the geometric mean over joints of "
@@ -558,7 +792,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
           "torques in N m per joint.")
     if args.out is not None:
         files = list(write_results(records, args.out, meta_out))
-        written = [] if args.no_plots else _plots(results, args.out)
+        written = [] if args.no_plots else _plots([(r[2], r[3]) for r in results], args.out)
         files += written + traj_files
         # last, so that a complete manifest means every file above is in place
         manifest = finish_output_set(args.out, files, meta_out.get("command"))

@@ -75,6 +75,7 @@ from numba import njit
 
 from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
                        mass_matrix_into)
+from .io import cache_dir
 from .bounds import BOUND_SIGNALS
 from .params import ArmParams
 from .reference import REFERENCE_SIGNALS
@@ -612,15 +613,6 @@ def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Obs
     return f"    return {fn_name}({args})\n"
 
 
-def _cache_root() -> Path:
-    """Folder for generated glue modules (their numba cache sits beside them)."""
-    env = os.environ.get("BLF_GYM_CACHE_DIR")
-    if env:
-        return Path(env)
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "blf-gym"
-
-
 def _source_of(fn: Any) -> bytes:
     py = getattr(fn, "py_func", fn)
     mod = sys.modules.get(py.__module__)
@@ -703,7 +695,7 @@ def _load_glue(src: str, name: str, bindings: dict) -> Any:
     with the plug-ins bound as globals."""
     from .simulate import _fixed
 
-    root = _cache_root()
+    root = cache_dir()  # the generated glue modules; their numba cache sits beside them
     path = root / f"glue_{name}.py"
     try:
         root.mkdir(parents=True, exist_ok=True)

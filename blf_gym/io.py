@@ -23,12 +23,23 @@ from typing import Any, Iterable, Iterator
 
 import numpy as np
 
-__all__ = ["atomic_path", "atomic_write_text", "atomic_write_json", "atomic_write_npz", "check_out_dir",
+__all__ = ["cache_dir", "atomic_path", "atomic_write_text", "atomic_write_json", "atomic_write_npz", "check_out_dir",
            "os_error_message", "MANIFEST", "begin_output_set", "finish_output_set", "verify_output_set"]
 
 MANIFEST = "manifest.json"
 """The name of an output set's manifest, in the set's folder."""
 MANIFEST_VERSION = 1
+
+
+def cache_dir() -> Path:
+    """blf-gym's cache folder: ``BLF_GYM_CACHE_DIR`` if set, else ``blf-gym`` in the user's cache
+    (``XDG_CACHE_HOME`` or ``~/.cache``). It holds the generated glue of the compiled closed loops
+    (:mod:`blf_gym.blocks`) and blf-eval's law results (``agents.lawcache``); deleting it is safe."""
+    env = os.environ.get("BLF_GYM_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "blf-gym"
 
 
 def _name_target(exc: OSError, path: Path) -> None:

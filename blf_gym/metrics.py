@@ -51,7 +51,7 @@ RECORD_FIELDS = (
 )
 PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
 PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds",
-                     "observer")
+                     "observer", "law_reused")
 """Optional per-record fields saying what produced it (the CSV carries them as JSON text)."""
 PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
              "torque_rms", "torque_peak", "saturated_fraction")
