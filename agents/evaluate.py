@@ -109,7 +109,7 @@ def build_scenarios(
             raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
         sc = preset(name, **sim_over)
         if kwargs:
-            sc = replace(apply_variations(sc, kwargs), name=f"{name}+custom")
+            sc = apply_variations(sc, kwargs, name=f"{name}+custom")
         groups.append((sc.name, [sc]))
     for name, count in zip(suites, counts):
         if count == 0:

@@ -164,34 +164,36 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
     return out
 
 
-def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True) -> Scenario:
+def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True,
+                     name: str | None = None) -> Scenario:
     """``base`` with the named knobs of :data:`VARIATIONS` applied (validated by
-    :func:`check_variations`)."""
+    :func:`check_variations`), and renamed ``name`` if one is given. The new scenario is built and
+    checked once, whatever the number of knobs (a reset draws all of them)."""
     v = check_variations(variations, base.arm.n_links, strict)
     sc = base
+    changes: dict[str, Any] = {} if name is None else {"name": name}
     if "frequency" in v:
-        sc = replace(sc, reference=replace(sc.reference, frequency=v["frequency"]))
+        changes["reference"] = replace(sc.reference, frequency=v["frequency"])
     if "force" in v or "force_onset" in v:
         wrench = (v["force"], 0.0, 0.0) if "force" in v else sc.force.wrench
         onset = v.get("force_onset", sc.force.onset)
-        sc = replace(sc, force=replace(sc.force, wrench=wrench, onset=onset))
+        changes["force"] = replace(sc.force, wrench=wrench, onset=onset)
     if "friction_scale" in v:
         s = v["friction_scale"]
-        sc = replace(sc, friction=replace(sc.friction, viscous=sc.friction.viscous * s,
-                                          coulomb=sc.friction.coulomb * s))
+        changes["friction"] = replace(sc.friction, viscous=sc.friction.viscous * s, coulomb=sc.friction.coulomb * s)
     if "dead_zone_scale" in v:
         s = v["dead_zone_scale"]
-        sc = replace(sc, dead_zone=replace(sc.dead_zone, break_right=sc.dead_zone.break_right * s,
-                                           break_left=sc.dead_zone.break_left * s))
+        changes["dead_zone"] = replace(sc.dead_zone, break_right=sc.dead_zone.break_right * s,
+                                       break_left=sc.dead_zone.break_left * s)
     if "payload" in v:
         masses = list(sc.arm.masses)
         masses[-1] = v["payload"]
-        sc = replace(sc, arm=ArmParams(lengths=sc.arm.lengths, masses=tuple(masses), gravity=sc.arm.gravity))
+        changes["arm"] = ArmParams(lengths=sc.arm.lengths, masses=tuple(masses), gravity=sc.arm.gravity)
     if "initial_error" in v:
-        sc = replace(sc, initial_error=v["initial_error"])
+        changes["initial_error"] = v["initial_error"]
     if "angle_noise_std" in v:
-        sc = replace(sc, angle_noise_std=v["angle_noise_std"])
-    return sc
+        changes["angle_noise_std"] = v["angle_noise_std"]
+    return replace(sc, **changes) if changes else sc
 
 
 def _training_draws(rng: np.random.Generator, n_links: int) -> dict[str, Any]:
@@ -232,7 +234,7 @@ def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: s
     base = base if base is not None else preset("paper-0.1hz")
     draws = _training_draws(rng, base.arm.n_links)
     if name == "randomized":
-        return replace(apply_variations(base, draws), name=name)
+        return apply_variations(base, draws, name=name)
     pushed = rng.choice(len(VARIATIONS), size=int(rng.integers(1, 4)), replace=False)
     for k in sorted(int(i) for i in pushed):
         knob = VARIATIONS[k]
@@ -240,7 +242,7 @@ def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: s
             draws[knob] = tuple(_outside(rng, knob, 0.0, 0.0) for _ in range(base.arm.n_links))
         else:
             draws[knob] = _outside(rng, knob, draws["frequency"], base.sim.duration)
-    return replace(apply_variations(base, draws, strict=False), name=name)
+    return apply_variations(base, draws, strict=False, name=name)
 
 
 def outside_training(sc: Scenario, base: Scenario | None = None) -> list[str]:
