@@ -19,7 +19,7 @@ import numpy as np
 import blf_gym  # noqa: F401  (registers the ids)
 
 
-def _env_step_us(env_id: str, steps: int, **kwargs) -> float:
+def env_step_us(env_id: str, steps: int, **kwargs) -> float:
     env = gym.make(env_id, **kwargs)
     env.reset(seed=0)
     a = np.zeros(env.action_space.shape, dtype=np.float32)
@@ -44,7 +44,7 @@ def _fresh_env_step_us(steps: int, kwargs: dict) -> float:
     import sys
 
     code = ("import json, sys; sys.path.insert(0, %r); import bench_env; "
-            "print(bench_env._env_step_us('PlanarBLFResidual-v0', %d, **json.loads(%r)))"
+            "print(bench_env.env_step_us('PlanarBLFResidual-v0', %d, **json.loads(%r)))"
             % (str(__import__('pathlib').Path(__file__).parent), steps, json.dumps(kwargs)))
     out = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     return float(out.stdout.strip().splitlines()[-1])
@@ -69,9 +69,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=2000)
     args = ap.parse_args()
-    pend = _env_step_us("Pendulum-v1", args.steps)
-    plain = _env_step_us("PlanarBLF-v0", args.steps)
-    resid = _env_step_us("PlanarBLFResidual-v0", args.steps)
+    pend = env_step_us("Pendulum-v1", args.steps)
+    plain = env_step_us("PlanarBLF-v0", args.steps)
+    resid = env_step_us("PlanarBLFResidual-v0", args.steps)
     # the barrier filter (docs/model.md section 11), against the unfiltered env, each in a fresh
     # process, alternating (in one process a second kernel slows the first one's env down)
     filt, unf = [], []

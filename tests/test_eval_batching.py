@@ -32,7 +32,23 @@ def test_the_lean_actor_is_predict_bit_for_bit_on_the_shipped_agents(name):
         assert got.dtype == want.dtype and got.shape == want.shape
         assert np.array_equal(got, want), (name, rows)
         # and it took the lean path, not predict (which would make this test vacuous)
-        assert _Actor(model).policy is not None and _Actor(model).mean
+        assert _Actor(model).policy is not None and _Actor(model).mean and _Actor(model).layers
+
+
+def test_the_lean_actor_follows_other_actor_nets_as_predict_does():
+    import gymnasium as gym
+    import torch
+    from stable_baselines3 import PPO
+
+    env = gym.make("Pendulum-v1")
+    obs = np.random.default_rng(3).normal(size=(12, 3)).astype(np.float32)
+    for arch in (dict(activation_fn=torch.nn.ReLU), dict(activation_fn=torch.nn.ELU)):
+        model = PPO("MlpPolicy", env, seed=0, policy_kwargs=arch)
+        actor = _Actor(model)
+        # ReLU is a plain operation; ELU is not, and goes through the policy's own modules
+        assert (actor.layers is not None) == (arch["activation_fn"] is torch.nn.ReLU)
+        for rows in (1, 12):
+            assert np.array_equal(actor(obs[:rows]), model.predict(obs[:rows], deterministic=True)[0])
 
 
 def test_the_lean_actor_unscales_a_squashed_policy_as_predict_does():
