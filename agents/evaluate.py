@@ -186,41 +186,50 @@ class _Actor:
               and isinstance(getattr(pol, "action_space", None), spaces.Box)
               and len(pol.observation_space.shape) == 1)
         self.policy = pol if ok else None
-        self.mean = False
+        self.mean = self.plain = False
+        self.layers: list[Any] | None = None  # the actor as torch functions, or None: the policy's _predict
         if ok:
+            import torch
             from stable_baselines3.common.distributions import DiagGaussianDistribution
-            from stable_baselines3.common.policies import ActorCriticPolicy
+            from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel
 
+            self._torch = torch
             cls = type(pol)
             self.mean = (isinstance(pol, ActorCriticPolicy) and isinstance(pol.action_dist, DiagGaussianDistribution)
                          and not pol.squash_output
                          and all(getattr(cls, m) is getattr(ActorCriticPolicy, m)
                                  for m in ("_predict", "get_distribution", "_get_action_dist_from_latent")))
             pol.set_training_mode(False)
-        self.layers = self._plain_layers(pol) if self.mean else None
+            if self.mean:
+                self.layers = self._plain_layers(pol)
+                if self.layers is None:  # the distribution's mean through the policy's own modules
+                    self.layers = [lambda x: pol.action_net(pol.mlp_extractor.forward_actor(
+                        BaseModel.extract_features(pol, x, pol.pi_features_extractor)))]
+                else:
+                    self.plain = True
 
     @staticmethod
-    def _plain_layers(pol: Any) -> list[tuple[str, Any, Any]] | None:
-        """The actor as a list of plain operations, when it is SB3's default MLP: a flatten feature
-        extractor, then Linear layers and element-wise activations, then ``action_net``. Each is
-        the torch function the module's ``forward`` calls (``F.linear``, ``torch.tanh``, ...), so the
-        bits are the same, without the per-module call machinery (about 10 us per module here)."""
+    def _plain_layers(pol: Any) -> list[Any] | None:
+        """The actor as a list of torch functions, when it is SB3's default MLP: a flatten feature
+        extractor (SB3's preprocessing of a Box observation is ``.float()``; a batch of vectors is
+        already flat), then Linear layers and element-wise activations, then ``action_net``. Each is
+        the function the module's ``forward`` calls (``F.linear``, ``torch.tanh``, ...), so the bits
+        are the same, without the per-module call machinery (about 10 us per module here)."""
         import torch
         from stable_baselines3.common.torch_layers import FlattenExtractor
 
-        acts = {torch.nn.Tanh: "tanh", torch.nn.ReLU: "relu", torch.nn.Identity: "id"}
-        if type(pol.pi_features_extractor) is not FlattenExtractor or type(pol.action_net) is not torch.nn.Linear:
-            return None
+        acts = {torch.nn.Tanh: torch.tanh, torch.nn.ReLU: torch.relu}
         net = pol.mlp_extractor.policy_net
-        if type(net) is not torch.nn.Sequential:
+        if (type(pol.pi_features_extractor) is not FlattenExtractor or type(pol.action_net) is not torch.nn.Linear
+                or type(net) is not torch.nn.Sequential):
             return None
-        ops: list[tuple[str, Any, Any]] = []
+        ops: list[Any] = [lambda x: x.float()]
         for m in [*net, pol.action_net]:
             if type(m) is torch.nn.Linear:
-                ops.append(("linear", m.weight, m.bias))
-            elif acts.get(type(m)):
-                ops.append((acts[type(m)], None, None))
-            else:
+                ops.append(lambda x, w=m.weight, b=m.bias: torch.nn.functional.linear(x, w, b))
+            elif type(m) in acts:
+                ops.append(acts[type(m)])
+            elif type(m) is not torch.nn.Identity:
                 return None
         return ops
 
@@ -228,27 +237,14 @@ class _Actor:
         pol = self.policy
         if pol is None:
             return self.model.predict(obs, deterministic=True)[0]
-        import torch
-
+        torch = self._torch
         space = pol.action_space
         x = torch.as_tensor(np.array(obs).reshape((-1, *pol.observation_space.shape)), device=pol.device)
         with torch.inference_mode():
             if self.layers is not None:
-                # SB3's preprocessing of a Box observation is .float(); the flatten extractor leaves
-                # a batch of vectors as it is
-                actions = x.float()
-                for op, w, b in self.layers:
-                    if op == "linear":
-                        actions = torch.nn.functional.linear(actions, w, b)
-                    elif op == "tanh":
-                        actions = torch.tanh(actions)
-                    elif op == "relu":
-                        actions = torch.relu(actions)
-            elif self.mean:
-                from stable_baselines3.common.policies import BaseModel
-
-                features = BaseModel.extract_features(pol, x, pol.pi_features_extractor)
-                actions = pol.action_net(pol.mlp_extractor.forward_actor(features))
+                for f in self.layers:
+                    x = f(x)
+                actions = x
             else:
                 actions = pol._predict(x, deterministic=True)
         actions = actions.cpu().numpy().reshape((-1, *space.shape))
@@ -669,17 +665,17 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     fresh = bool(getattr(args, "fresh_law", False))
     seeds = {label: [EVAL_SEED_OFFSET + i for i in range(len(scs))] for label, scs in groups}
 
-    def inner_law(label: str, scs: list[Scenario]) -> tuple[list[Any], float, bool]:
-        # the proposed law with the LESO on the inner path: (episodes, their wall time, reused)
+    def inner_law(label: str, scs: list[Scenario]) -> list[Any]:
+        # the proposed law with the LESO on the inner path, the baselines' reference when the law's
+        # own row is not scored (or scored with another observer)
         key = law_key("inner", "leso", scs, seeds[label])
         hit = None if fresh else load_law(key, len(scs))
         if hit is not None:
-            return hit[0], hit[1], True
+            return hit[0]
         t0 = time.perf_counter()
         stats = law_reference(scs, None, args.threads)
-        wall = time.perf_counter() - t0
-        store_law(key, stats, wall)
-        return stats, wall, False
+        store_law(key, stats, time.perf_counter() - t0)
+        return stats
 
     def laws_for(meta: dict[str, Any]) -> list[list[Any]]:
         # the law on the same episodes and noise as an agent's: its env set-up (control period, noise
@@ -782,7 +778,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                     elif (label, "inner") in law_cache:
                         law = law_cache[(label, "inner")]
                     else:
-                        law = law_cache.setdefault((label, "inner"), inner_law(label, scs)[0])
+                        law = law_cache.setdefault((label, "inner"), inner_law(label, scs))
                     finish(j, name, kind, None, g, stats, first, wall, law, hit is not None)
                 continue
             model, meta, norm = agent

@@ -32,7 +32,7 @@ def test_the_lean_actor_is_predict_bit_for_bit_on_the_shipped_agents(name):
         assert got.dtype == want.dtype and got.shape == want.shape
         assert np.array_equal(got, want), (name, rows)
         # and it took the lean path, not predict (which would make this test vacuous)
-        assert _Actor(model).policy is not None and _Actor(model).mean and _Actor(model).layers
+        assert _Actor(model).policy is not None and _Actor(model).mean and _Actor(model).plain
 
 
 def test_the_lean_actor_follows_other_actor_nets_as_predict_does():
@@ -46,7 +46,7 @@ def test_the_lean_actor_follows_other_actor_nets_as_predict_does():
         model = PPO("MlpPolicy", env, seed=0, policy_kwargs=arch)
         actor = _Actor(model)
         # ReLU is a plain operation; ELU is not, and goes through the policy's own modules
-        assert (actor.layers is not None) == (arch["activation_fn"] is torch.nn.ReLU)
+        assert actor.mean and actor.plain == (arch["activation_fn"] is torch.nn.ReLU)
         for rows in (1, 12):
             assert np.array_equal(actor(obs[:rows]), model.predict(obs[:rows], deterministic=True)[0])
 

@@ -114,3 +114,13 @@ def test_everything_a_result_depends_on_changes_the_key():
     assert {"simulate.py", "core.py", "metrics.py", "blocks.py", "controllers.py"} <= names
     assert "evaluate.py" in {p.name for p in _package_files("agents")}
     assert len(code_digest()) == 64
+
+
+def test_a_baseline_scored_without_the_law_s_row_gets_the_same_reference(tmp_path):
+    # the law is then run (or reused) only as bc's reference: bc's score must not depend on it
+    tiny = ["--agents", "--suite-seeds", "2", "--duration", "0.3", "--no-progress", "--no-plots"]
+    assert ev.main(["--controllers", "bc", "--out", str(tmp_path / "alone"), *tiny]) == 0
+    assert ev.main(["--controllers", "proposed", "bc", "--out", str(tmp_path / "both"), "--fresh-law", *tiny]) == 0
+    alone = [r for r in _records(tmp_path / "alone") if r["policy"] == "bc"]
+    both = [r for r in _records(tmp_path / "both") if r["policy"] == "bc"]
+    assert len(alone) == 4 and alone == both
