@@ -124,3 +124,10 @@ def test_a_baseline_scored_without_the_law_s_row_gets_the_same_reference(tmp_pat
     alone = [r for r in _records(tmp_path / "alone") if r["policy"] == "bc"]
     both = [r for r in _records(tmp_path / "both") if r["policy"] == "bc"]
     assert len(alone) == 4 and alone == both
+
+
+def test_blf_eval_help_lists_the_common_cases_and_the_reuse():
+    text = ev._parser().format_help()
+    for case in ("blf-eval --agents runs/mine ", "blf-eval --agents runs/mine --suite-seeds 0", "--fresh-law",
+                 "law_reused"):
+        assert case in text, case
