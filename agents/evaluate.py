@@ -50,8 +50,8 @@ from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 from .lawcache import law_key, load_law, store_law
 from .loading import load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
 
-__all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes", "agent_group_episodes",
-           "law_env_kwargs", "law_reference", "law_reference_groups",
+__all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes",
+           "agent_group_episodes", "law_env_kwargs", "law_reference", "law_reference_groups",
            "build_scenarios", "load_agent"]
 
 
@@ -665,10 +665,14 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     fresh = bool(getattr(args, "fresh_law", False))
     seeds = {label: [EVAL_SEED_OFFSET + i for i in range(len(scs))] for label, scs in groups}
 
+    def inner_key(label: str, scs: list[Scenario]) -> str:
+        # the cache key of the proposed law with the LESO on the inner path, on one group
+        return law_key("inner", "leso", scs, seeds[label])
+
     def inner_law(label: str, scs: list[Scenario]) -> list[Any]:
         # the proposed law with the LESO on the inner path, the baselines' reference when the law's
         # own row is not scored (or scored with another observer)
-        key = law_key("inner", "leso", scs, seeds[label])
+        key = inner_key(label, scs)
         hit = None if fresh else load_law(key, len(scs))
         if hit is not None:
             return hit[0]
@@ -759,7 +763,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                     first: list[Any] = []
                     # the law's own row is every other row's reference: kept between runs
                     own_law = name == "proposed" and args.observer == "leso"
-                    hit = (load_law(law_key("inner", "leso", scs, seeds[label]), len(scs))
+                    hit = (load_law(inner_key(label, scs), len(scs))
                            if own_law and not fresh and not args.save_traj else None)
                     if hit is not None:
                         stats, wall = hit
@@ -772,7 +776,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                             del tr
                         wall = time.perf_counter() - t0
                         if own_law:
-                            store_law(law_key("inner", "leso", scs, seeds[label]), stats, wall)
+                            store_law(inner_key(label, scs), stats, wall)
                     if name == "proposed" and args.observer == "leso":
                         law = law_cache.setdefault((label, "inner"), stats)  # the law is this row itself
                     elif (label, "inner") in law_cache:

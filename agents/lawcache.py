@@ -20,9 +20,10 @@ What must be the same (all folded into one sha256 key, the file's name):
 Anything else (a different machine sharing a home folder, an edited file, a new numba) gives a new
 key and so a fresh run. One thing the key cannot see: code that a plug-in imports from a package
 other than its own (say a helper library of yours). After editing such code, run ``blf-eval
---fresh-law`` once (it also replaces the kept files). A file that cannot be read, or does not hold what its key says, is ignored
-and rewritten. Files are written atomically. ``blf-eval --fresh-law`` ignores the cache, and
-``BLF_GYM_CACHE_DIR`` moves it (with the compiled glue) elsewhere; deleting the folder is always safe.
+--fresh-law`` once: it ignores the kept files and replaces them. A file that cannot be read, or
+does not hold what its key says, is ignored and rewritten. Files are written atomically.
+``BLF_GYM_CACHE_DIR`` moves the cache (with the compiled glue) elsewhere; deleting the folder is
+always safe.
 """
 
 from __future__ import annotations

@@ -170,30 +170,30 @@ def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool
     :func:`check_variations`), and renamed ``name`` if one is given. The new scenario is built and
     checked once, whatever the number of knobs (a reset draws all of them)."""
     v = check_variations(variations, base.arm.n_links, strict)
-    sc = base
     changes: dict[str, Any] = {} if name is None else {"name": name}
     if "frequency" in v:
-        changes["reference"] = replace(sc.reference, frequency=v["frequency"])
+        changes["reference"] = replace(base.reference, frequency=v["frequency"])
     if "force" in v or "force_onset" in v:
-        wrench = (v["force"], 0.0, 0.0) if "force" in v else sc.force.wrench
-        onset = v.get("force_onset", sc.force.onset)
-        changes["force"] = replace(sc.force, wrench=wrench, onset=onset)
+        wrench = (v["force"], 0.0, 0.0) if "force" in v else base.force.wrench
+        onset = v.get("force_onset", base.force.onset)
+        changes["force"] = replace(base.force, wrench=wrench, onset=onset)
     if "friction_scale" in v:
         s = v["friction_scale"]
-        changes["friction"] = replace(sc.friction, viscous=sc.friction.viscous * s, coulomb=sc.friction.coulomb * s)
+        changes["friction"] = replace(base.friction, viscous=base.friction.viscous * s,
+                                      coulomb=base.friction.coulomb * s)
     if "dead_zone_scale" in v:
         s = v["dead_zone_scale"]
-        changes["dead_zone"] = replace(sc.dead_zone, break_right=sc.dead_zone.break_right * s,
-                                       break_left=sc.dead_zone.break_left * s)
+        changes["dead_zone"] = replace(base.dead_zone, break_right=base.dead_zone.break_right * s,
+                                       break_left=base.dead_zone.break_left * s)
     if "payload" in v:
-        masses = list(sc.arm.masses)
+        masses = list(base.arm.masses)
         masses[-1] = v["payload"]
-        changes["arm"] = ArmParams(lengths=sc.arm.lengths, masses=tuple(masses), gravity=sc.arm.gravity)
+        changes["arm"] = ArmParams(lengths=base.arm.lengths, masses=tuple(masses), gravity=base.arm.gravity)
     if "initial_error" in v:
         changes["initial_error"] = v["initial_error"]
     if "angle_noise_std" in v:
         changes["angle_noise_std"] = v["angle_noise_std"]
-    return replace(sc, **changes) if changes else sc
+    return replace(base, **changes) if changes else base
 
 
 def _training_draws(rng: np.random.Generator, n_links: int) -> dict[str, Any]:
