@@ -8,7 +8,9 @@ compared. Three figures, each the median within its process:
 * ``step_us``: one closed-loop step (plant + LESO + proposed law, ODE3 at 0.1 ms), amortised over
   a 30 s run in one compiled call;
 * ``env_us``: the residual ``env.step`` through ``gym.make`` (100 integration steps);
-* ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads.
+* ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads;
+* ``batch64_us``: one closed-loop step per arm, amortised over a batch of 64 mixed training-suite
+  scenarios with measurement noise on, on one thread (100-step calls, the env's control period).
 
 Run:  python benchmarks/compare.py BASE_TREE NEW_TREE [--rounds 5]
 e.g.  git worktree add /tmp/base HEAD~1 && python benchmarks/compare.py /tmp/base .
@@ -69,8 +71,21 @@ for _ in range(40):
     t0 = time.perf_counter()
     venv.step(A)
     vs.append(time.perf_counter() - t0)
+
+from blf_gym.scenarios import sample_suite
+mixed = [sample_suite(np.random.default_rng(s)) for s in range(64)]
+batch = ClosedLoop(mixed, "proposed", threads=1)
+noise = np.random.default_rng(0).normal(size=(64, 100, 3)) * np.radians(0.01)
+batch.advance(100, noise=noise, record_samples=0)
+bs = []
+for _ in range(5):
+    batch.set_scenarios(mixed)
+    t0 = time.perf_counter()
+    for _ in range(20):
+        batch.advance(100, noise=noise, record_samples=0)
+    bs.append((time.perf_counter() - t0) / (20 * 100 * 64) * 1e6)
 print(json.dumps({"step_us": statistics.median(steps), "env_us": statistics.median(ts) * 1e6,
-                  "vec64": 64 / statistics.median(vs)}))
+                  "vec64": 64 / statistics.median(vs), "batch64_us": statistics.median(bs)}))
 """
 
 
@@ -97,7 +112,8 @@ def main() -> None:
             print(f"round {r + 1} {name}: " + ", ".join(f"{k} {v:.3f}" for k, v in runs[name][-1].items()),
                   flush=True)
     print(f"\nmedians of {args.rounds} interleaved rounds (lower is better for us, higher for /s):")
-    for key, unit, better in (("step_us", "us", "lower"), ("env_us", "us", "lower"), ("vec64", "/s", "higher")):
+    for key, unit, better in (("step_us", "us", "lower"), ("env_us", "us", "lower"), ("vec64", "/s", "higher"),
+                              ("batch64_us", "us", "lower")):
         b = statistics.median(x[key] for x in runs["base"])
         n = statistics.median(x[key] for x in runs["new"])
         print(f"  {key:<8} base {b:10.3f} {unit}   new {n:10.3f} {unit}   new/base {n / b:.3f} ({better} is better)")

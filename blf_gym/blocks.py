@@ -115,8 +115,18 @@ def nominal_model_into(y, arm, model, work):
     M(y)], for the arm ``arm`` (ArmParams.pack()). ``work`` needs ``n`` entries."""
     n = y.shape[0]
     nn = n * n
+    abs_trig_into(y, model[nn + n : nn + 3 * n])
+    nominal_terms_into(arm, model, work)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def nominal_terms_into(arm, model, work):
+    """The rest of :func:`nominal_model_into` once the model's cos and sin entries are in place:
+    M, G and the LDL^T factor (the closed loop computes the trigonometry apart, see
+    :mod:`blf_gym.simulate`)."""
+    n = (arm.shape[0] - 1) // 2
+    nn = n * n
     trig = model[nn + n : nn + 3 * n]
-    abs_trig_into(y, trig)
     mass_matrix_into(trig, arm, model[:nn], work)
     gravity_into(trig, arm, model[nn : nn + n], work)
     ldl_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])

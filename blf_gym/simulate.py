@@ -34,7 +34,8 @@ from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
 from .bounds import BOUND_LEN, KA, KB, bounds_into
-from .blocks import Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length, nominal_model_into, work_length
+from .blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
+                     nominal_terms_into, work_length)
 from .controller import make_controller, make_observer
 from .dynamics import (
     WORK_PER_LINK,
@@ -112,9 +113,9 @@ def _window(typingctx, arr, start, length):
     The kernel carves all its scratch views with this: with constant shapes (n = _N is bound at
     specialisation) LLVM unrolls every per-joint loop of the plant, law and observer, and with
     constant offsets from one base pointer it can tell the views apart (no aliasing reloads).
-    Callers guarantee ``start + length <= len(arr)`` (scratch_length checks the layout).
+    Callers guarantee ``start + length <= len(arr)`` (lane_layout lays the views out).
     """
-    if not (isinstance(arr, nbtypes.Array) and arr.ndim == 1 and arr.layout == "C"):
+    if not (isinstance(arr, nbtypes.Array) and arr.ndim == 1 and arr.layout in ("C", "A")):
         return None
     sig = arr(arr, nbtypes.intp, nbtypes.intp)
 
@@ -122,14 +123,57 @@ def _window(typingctx, arr, start, length):
         aryty = signature.args[0]
         src = context.make_array(aryty)(context, builder, args[0])
         out = context.make_array(aryty)(context, builder)
-        itemsize = context.get_constant(nbtypes.intp, context.get_abi_sizeof(context.get_data_type(aryty.dtype)))
-        populate_array(out, data=builder.gep(src.data, [args[1]]),
-                       shape=cgutils.pack_array(builder, [args[2]]),
-                       strides=cgutils.pack_array(builder, [itemsize]),
+        if aryty.layout == "C":
+            stride = context.get_constant(nbtypes.intp, context.get_abi_sizeof(context.get_data_type(aryty.dtype)))
+            data = builder.gep(src.data, [args[1]])
+        else:  # a lane's view (see _lane): the same stride, the start counted in strides
+            stride = cgutils.unpack_tuple(builder, src.strides)[0]
+            raw = builder.gep(builder.bitcast(src.data, cgutils.voidptr_t), [builder.mul(args[1], stride)])
+            data = builder.bitcast(raw, src.data.type)
+        populate_array(out, data=data, shape=cgutils.pack_array(builder, [args[2]]),
+                       strides=cgutils.pack_array(builder, [stride]),
                        itemsize=src.itemsize, meminfo=src.meminfo, parent=src.parent)
         return impl_ret_borrowed(context, builder, aryty, out._getvalue())
 
     return sig, codegen
+
+
+def _lane_intrinsic(lanes: int):
+    """The intrinsic ``_lane(block, start, length, b)``: lane ``b``'s entries ``start`` to
+    ``start + length`` of a block laid out lanes-innermost (entry s of lane b at ``s * lanes + b``),
+    as a 1-D view with the constant stride ``lanes`` elements.
+
+    This is the batched kernel's layout: one block holds ``lanes`` arms side by side, so the same
+    entry of consecutive arms is contiguous and a loop over the lanes of per-arm code (plug-ins
+    included, unchanged) vectorises. A constant stride lets LLVM prove the lanes independent."""
+
+    @intrinsic
+    def _lane(typingctx, block, start, length, b):
+        if not (isinstance(block, nbtypes.Array) and block.ndim == 1 and block.layout == "C"):
+            return None
+        out_t = nbtypes.Array(block.dtype, 1, "A")
+        sig = out_t(block, nbtypes.intp, nbtypes.intp, nbtypes.intp)
+
+        def codegen(context, builder, signature, args):
+            src = context.make_array(signature.args[0])(context, builder, args[0])
+            out = context.make_array(out_t)(context, builder)
+            itemsize = context.get_abi_sizeof(context.get_data_type(block.dtype))
+            first = builder.add(builder.mul(args[1], context.get_constant(nbtypes.intp, lanes)), args[3])
+            populate_array(out, data=builder.gep(src.data, [first]), shape=cgutils.pack_array(builder, [args[2]]),
+                           strides=cgutils.pack_array(builder, [context.get_constant(nbtypes.intp, lanes * itemsize)]),
+                           itemsize=src.itemsize, meminfo=src.meminfo, parent=src.parent)
+            return impl_ret_borrowed(context, builder, out_t, out._getvalue())
+
+        return sig, codegen
+
+    return _lane
+
+
+LANES = 4
+"""Arms per block of the batched kernel: one AVX2 vector of doubles. A batch of N arms is stepped
+as ceil(N / LANES) blocks; a single arm uses the same code compiled for one lane."""
+_lane1 = _lane_intrinsic(1)
+_laneN = _lane_intrinsic(LANES)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -241,9 +285,39 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
     return False
 
 
-def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og, fg, ref, bnd, cout,
-                    fout, rr, u, hu, satf, dx, pw, Mp, Lp, wl, wo):
-    """One evaluation of the closed-loop right-hand side at (t, x), written into ``dx``.
+@njit(cache=True, error_model="numpy", inline="always")
+def _stage_trig(ts, xs, nz, y, rp, plant, bp, ref, bnd, pw, nom, fr, n):
+    """The part of a stage evaluation that calls the maths library (cos, sin, acos, atan2, exp),
+    for one lane: the reference and the bounds at ``ts``, the measurement y, the cos and sin of the
+    plant's and the nominal model's link angles, and the friction torques. It runs in a loop of its
+    own, so that the rest of the stage, :func:`_stage_rest_template`, vectorises across lanes."""
+    nn = n * n
+    arm = plant[: 2 * n + 1]
+    reference_into(ts, rp, arm, ref)
+    bounds_into(ts, bp, bnd)
+    same = True
+    for i in range(n):
+        y[i] = xs[i] + nz[i]
+        if y[i] != xs[i]:
+            same = False
+    trig = pw[4 * n : 6 * n]
+    abs_trig_into(xs[:n], trig)
+    ntrig = nom[nn + n : nn + 3 * n]
+    if same:  # without noise y == q: the same numbers abs_trig_into(y) would give
+        for i in range(2 * n):
+            ntrig[i] = trig[i]
+    else:
+        abs_trig_into(y, ntrig)
+    o = 2 * n + 1
+    for i in range(n):
+        fr[i] = friction(xs[n + i], plant[o + _VISC], plant[o + _COUL], plant[o + _PSI])
+
+
+def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, fout, rr, u, hu, satf, dx, pw, Mp,
+                         Lp, wl, wo, fr):
+    """The rest of one evaluation of the closed-loop right-hand side at (ts, x) for one lane, into
+    ``dx``, after :func:`_stage_trig`. Branch-free where the lanes may differ, so that a loop over
+    the lanes vectorises.
 
     The measurement is y = q(stage) + noise, the noise sample held over the step, so without noise
     the law and the observer see the angles at every stage like Simulink's continuous blocks.
@@ -251,53 +325,34 @@ def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og,
     ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
     ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter``
     turns the residual (with ``_PLAIN``, the agent's torque minus u_law) into ``fout[:n]``.
+    The nominal model is always evaluated at y, from the cos and sin :func:`_stage_trig` left in
+    it: when the nominal arm is the plant's and y == q this gives the plant's own numbers.
     """
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nn = n * n
     arm = plant[: 2 * n + 1]
     o = 2 * n + 1
-    reference_into(t, rp, arm, ref)
-    bounds_into(t, bp, bnd)
     q = _fixed(x, 0, n)
     qd = _fixed(x, n, n)
     xo = _fixed(x, 2 * n, _NO)  # noqa: F821
     xc = _fixed(x, 2 * n + _NO, _NC)  # noqa: F821
     dxo = _fixed(dx, 2 * n, _NO)  # noqa: F821
     dxc = _fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
-    same_angles = True
-    for i in range(n):
-        y[i] = q[i] + noise_j[i]
-        if y[i] != q[i]:
-            same_angles = False
-    # the plant's configuration terms
     trig = pw[4 * n : 6 * n]
     c = pw[6 * n : 7 * n]
     g = pw[7 * n : 8 * n]
     jf = pw[8 * n : 9 * n]
     rhs = pw[9 * n : 10 * n]
-    abs_trig_into(q, trig)
     mass_matrix_into(trig, arm, Mp, pw)
     gravity_into(trig, arm, g, pw)
     ldl_factor_into(Mp, Lp)
-    # The nominal model at the measured angles, shared by the law and the observer. Without noise
-    # y == q, and when the nominal arm is the true one (the paper's cases) it equals the plant's.
-    if same_angles and same_arm:
-        for i in range(nn):
-            nom[i] = Mp[i]
-        for i in range(n):
-            nom[nn + i] = g[i]
-        for i in range(2 * n):
-            nom[nn + n + i] = trig[i]
-        for i in range(nn):
-            nom[nn + 3 * n + i] = Lp[i]
-    else:
-        nominal_model_into(y, _fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
+    nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
     umax = plant[o + _UMAX]
-    _ctrl_output(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+    _ctrl_output(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     if _FILTER:  # noqa: F821 (compile-time constant)
         for i in range(n):
             rr[i] = res[i] - cout[i] if _PLAIN else res[i]  # noqa: F821
-        _res_filter(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+        _res_filter(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     for i in range(n):
         ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
         s = 0.0
@@ -312,275 +367,346 @@ def _stage_template(t, x, noise_j, y, res, plant, nom, same_arm, rp, bp, lg, og,
         hu[i] = dead_zone(ui, plant[o + _HR], plant[o + _HL], plant[o + _TR], plant[o + _TL])
     # plant: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
     coriolis_times_into(trig, qd, qd, arm, c, pw)
-    if force_active(t, plant[o + _ONSET]) > 0.0:
-        wrench_torque_into(trig, arm, plant[o + _FX : o + _MZ + 1], jf)
-    else:
-        for i in range(n):
-            jf[i] = 0.0
+    wrench_torque_into(trig, arm, plant[o + _FX : o + _MZ + 1], jf)
+    on = force_active(ts, plant[o + _ONSET]) > 0.0
     for i in range(n):
-        rhs[i] = hu[i] - c[i] - g[i] - jf[i] - friction(qd[i], plant[o + _VISC], plant[o + _COUL],
-                                                       plant[o + _PSI])
+        jf[i] = jf[i] if on else 0.0
+    for i in range(n):
+        rhs[i] = hu[i] - c[i] - g[i] - jf[i] - fr[i]
         dx[i] = qd[i]
     ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
-    _obs_rhs(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
-    _ctrl_update(t, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+    _obs_rhs(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
+    _ctrl_update(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
 
 
-def _advance_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
-                      noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
-    """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``.
+def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_gains: int, n_obs_gains: int,
+                n_filter_gains: int) -> dict[str, tuple[int, int]]:
+    """The per-lane entries of a block of the batched kernel, name -> (offset, length) in lane
+    entries (a block of L entries per lane holds ``L * LANES`` numbers)."""
+    nx = 2 * n + n_obs + n_ctrl
+    parts = [("K0", nx), ("K1", nx), ("K2", nx), ("K3", nx), ("xs", nx), ("xn", nx), ("ep", nx), ("x", nx),
+             ("y", n), ("nz", n), ("ref", 3 * n), ("bnd", BOUND_LEN), ("u", n), ("hu", n), ("satf", n),
+             ("x3", n), ("cout", n_out), ("fout", n_fout), ("rr", n), ("Mp", n * n), ("Lp", n * n),
+             ("nom", nominal_length(n)), ("pw", (10 + WORK_PER_LINK) * n + n * n), ("wl", work_length(n)),
+             ("wo", work_length(n)), ("smp", 4 * n), ("fr", n), ("res", n), ("plant", plant_length(n)),
+             ("rp", len(REFERENCE_PACK)), ("bp", len(BOUNDS_PACK)), ("lg", n_law_gains), ("og", n_obs_gains),
+             ("fg", n_filter_gains), ("ts", 1), ("flags", _N_FLAGS)]
+    out, o = {}, 0
+    for name, m in parts:
+        out[name] = (o, m)
+        o += m
+    out["_total"] = (o, 0)
+    return out
 
-    One step is: the stage evaluations (:func:`_stage_input`, ``_stage``), the step's bookkeeping
-    at its start (:func:`_step_bookkeeping`; at 1 ms samples also :func:`_sample`, which feeds the
-    reward's :func:`blf_gym.reward.accumulate_sample` and the record), the update
-    (:func:`_ode3_update`) and the instability check (:func:`_error_ratio`, :func:`_instability`).
+
+# per-lane flags of a block (floats, 1.0 true)
+(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0) = range(7)
+_N_FLAGS = 7
+
+
+def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
+                    noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
+    """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``, the arms
+    in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
+    :func:`lane_layout`, lanes innermost).
+
+    One step is: the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and ``_stage_rest``
+    in two loops over the lanes), the step's bookkeeping at its start (:func:`_step_bookkeeping`;
+    at 1 ms samples also the reward's :func:`blf_gym.reward.accumulate_sample` and the record),
+    the update (:func:`_ode3_update`) and the instability check (:func:`_error_ratio`,
+    :func:`_instability`). Every lane computes every stage the block needs; a lane's own control
+    flow (stopped, noisy, first-same-as-last, instability checks) only decides what it keeps, so
+    each arm's numbers are those it would get alone.
 
     Instability check (docs/model.md section 9): a step's embedded Bogacki-Shampine error estimate
     needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement noise
-    sample, residual). Without noise it is checked at every step, and that evaluation is reused as
-    the next step's first one when the inputs stay the same (first-same-as-last); at the last step
-    of a call it is evaluated anyway, since the next call may bring new inputs. With noise, whose
-    sample changes every step, it is evaluated at every step ending a 1 ms sample period (global
-    step index, so every path checks the same steps) and counts for that many steps.
+    sample, residual). Without noise it is checked at every step, and that evaluation is the next
+    step's first one when the inputs stay the same (first-same-as-last); at the last step of a call
+    it is evaluated anyway, since the next call may bring new inputs. With noise, whose sample
+    changes every step, it is evaluated at every step ending a 1 ms sample period (global step
+    index, so every path checks the same steps) and counts for that many steps.
     ``unstable_run[b]`` carries the count of consecutive unstable steps across calls, so the verdict
     does not depend on how a run is cut into calls.
 
     Stops an arm early on divergence (state restored to the last finite one) or, when
     ``terminate``, right after the first step whose end state violates a bound. Records the
     channels of :data:`CHANNELS` into ``rec[b]`` at every step index divisible by ``sps``.
-    ``scratch`` (N, scratch_length(...)) is per-arm work space.
     """
     N = X.shape[0]
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
-    nx = _NX  # noqa: F821 (2n + observer states + controller states, bound at specialisation)
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821 (lanes per block)
     has_noise = noise.shape[1] > 0
-    for b in range(N):
-        # Scratch views. The kernel is compiled without NRT: it allocates nothing and views carry
-        # no reference counting (which would otherwise dominate a step's cost). Every view is
-        # given a compile-time-constant shape, so after inlining LLVM unrolls the per-joint loops
-        # of the law, observer and model.
-        w = scratch[b]
-        K0 = _fixed(w, 0, nx)
-        K1 = _fixed(w, nx, nx)
-        K2 = _fixed(w, 2 * nx, nx)
-        K3 = _fixed(w, 3 * nx, nx)
-        o = 4 * nx
-        xs = _fixed(w, o, nx)
-        xn = _fixed(w, o + nx, nx)
-        ep = _fixed(w, o + 2 * nx, nx)
-        o += 3 * nx
-        y = _fixed(w, o, n)
-        nz = _fixed(w, o + n, n)
-        ref = _fixed(w, o + 2 * n, 3 * n)
-        bnd = _fixed(w, o + 5 * n, BOUND_LEN)
-        o += 5 * n + BOUND_LEN
-        u = _fixed(w, o, n)
-        hu = _fixed(w, o + n, n)
-        satf = _fixed(w, o + 2 * n, n)
-        x3 = _fixed(w, o + 3 * n, n)
-        o += 4 * n
-        cout = _fixed(w, o, _NOUT)  # noqa: F821 (the controller's outputs, u_law first)
-        o += _NOUT  # noqa: F821
-        fout = _fixed(w, o, _NFOUT)  # noqa: F821 (the residual filter's outputs, r_f first)
-        o += _NFOUT  # noqa: F821
-        rr = _fixed(w, o, n)  # the residual the filter sees
-        o += n
-        Mp = _fixed(w, o, n * n)
-        Lp = _fixed(w, o + n * n, n * n)
-        o += 2 * n * n
-        nom = _fixed(w, o, nominal_length(n))
-        o += nominal_length(n)
-        pw = _fixed(w, o, (10 + WORK_PER_LINK) * n + n * n)
-        o += (10 + WORK_PER_LINK) * n + n * n
-        wl = _fixed(w, o, work_length(n))
-        o += work_length(n)
-        wo = _fixed(w, o, work_length(n))
-        o += work_length(n)
-        # the inputs of the true lumped disturbance at the latest 1 ms sample [q, qd, qdd, u],
-        # evaluated once at the end of the call unless every sample is recorded
-        smp = _fixed(w, o, 4 * n)
-        x = _fixed(X[b], 0, nx)
-        ulaw = _fixed(cout, 0, n)
-        recording = nrec[b] < rec.shape[1]
-        x3_pending = False
-        res_b = residual[b]
-        rp_b = rp[b]
-        bp_b = bp[b]
-        lg_b = lg[b]
-        og_b = og[b]
-        fg_b = fgains[b]
-        plant_b = plant[b]
-        nom_b = nominal[b]
-        arm_b = plant_b[: 2 * n + 1]
-        same_arm = True
-        for i in range(2 * n + 1):
-            nom[model_length(n) + i] = nom_b[i]
-            if nom_b[i] != arm_b[i]:
-                same_arm = False
-        divlim = plant_b[2 * n + 1 + _DIVLIM]
-        err_rtol = plant_b[2 * n + 1 + _ERR_RTOL]
-        err_atol = plant_b[2 * n + 1 + _ERR_ATOL]
-        unstable_steps = plant_b[2 * n + 1 + _UNSTABLE_STEPS]
-        err_max = 0.0
-        err_run = unstable_run[b]
-        # a noisy arm's measurement changes every step: its check runs once per sample period
-        noisy = False
-        if has_noise:
-            for j in range(n_steps):
-                for i in range(n):
-                    if noise[b, j, i] != 0.0:
-                        noisy = True
-        umax = plant_b[2 * n + 1 + _UMAX]
-        st_b = status[b]
-        sm_b = sums[b]
-        for i in range(st_b.shape[0]):
-            st_b[i] = 0
-        st_b[ST_FIRST_VIOL] = -1
-        for i in range(sm_b.shape[0]):
-            sm_b[i] = 0.0
-        last_b = last[b]
-        k0 = ksteps[b]
-        steps = 0
-        diverged = 0
-        stopped = False
-        have_k0 = False
-        for j in range(n_steps):
-            k = k0 + j
-            t = k * dt
+    n_blocks = (N + LN - 1) // LN
+    for blk in range(n_blocks):
+        W = scratch[blk]
+        a0 = blk * LN
+        # load the lanes (a padding lane past the last arm copies the block's first arm, inactive)
+        for b in range(LN):
+            a = a0 + b if a0 + b < N else a0
+            x = _lane(W, _L_x, nx, b)  # noqa: F821
+            for i in range(nx):
+                x[i] = X[a, i]
+            pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+            for i in range(_NPL):  # noqa: F821
+                pl[i] = plant[a, i]
+            nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
+            for i in range(2 * n + 1):
+                nom[model_length(n) + i] = nominal[a, i]
+            v = _lane(W, _L_rp, _NRP, b)  # noqa: F821
+            for i in range(_NRP):  # noqa: F821
+                v[i] = rp[a, i]
+            v = _lane(W, _L_bp, _NBP, b)  # noqa: F821
+            for i in range(_NBP):  # noqa: F821
+                v[i] = bp[a, i]
+            v = _lane(W, _L_lg, _NLG, b)  # noqa: F821
+            for i in range(_NLG):  # noqa: F821
+                v[i] = lg[a, i]
+            v = _lane(W, _L_og, _NOG, b)  # noqa: F821
+            for i in range(_NOG):  # noqa: F821
+                v[i] = og[a, i]
+            v = _lane(W, _L_fg, _NFG, b)  # noqa: F821
+            for i in range(_NFG):  # noqa: F821
+                v[i] = fgains[a, i]
+            v = _lane(W, _L_res, n, b)  # noqa: F821
             for i in range(n):
-                nz[i] = noise[b, j, i] if has_noise else 0.0
-            check = (not noisy) or ((k + 1) % sps == 0)
-            halt = False
-            committed = False
-            # the stages share one call site, so the inlined stage (law and observer included) is
-            # compiled once: 0, 1, 2 are the step's Bogacki-Shampine stages, 3 the check's
-            # evaluation at the new state
+                v[i] = residual[a, i]
+            fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+            for i in range(_N_FLAGS):
+                fl[i] = 0.0
+            real = a0 + b < N
+            fl[_F_STOPPED] = 0.0 if real else 1.0
+            fl[_F_K0] = ksteps[a]
+            # a noisy arm's measurement changes every step: its check runs once per sample period
+            noisy = False
+            if has_noise:
+                for j in range(n_steps):
+                    for i in range(n):
+                        if noise[a, j, i] != 0.0:
+                            noisy = True
+            fl[_F_NOISY] = 1.0 if noisy else 0.0
+            if real:
+                st_b = status[a]
+                sm_b = sums[a]
+                for i in range(st_b.shape[0]):
+                    st_b[i] = 0
+                st_b[ST_FIRST_VIOL] = -1
+                for i in range(sm_b.shape[0]):
+                    sm_b[i] = 0.0
+        any_fsal = False  # every active lane's stage 0 is its last step's check evaluation
+        for j in range(n_steps):
+            # per lane: the step's noise, whether its instability check runs, who is still going
+            n_active = 0
+            any_check = False
+            for b in range(LN):
+                fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                if fl[_F_STOPPED] == 0.0:
+                    fl[_F_HALT] = 0.0
+                k = np.int64(fl[_F_K0]) + j
+                check = fl[_F_NOISY] == 0.0 or (k + 1) % sps == 0
+                fl[_F_CHECK] = 1.0 if check else 0.0
+                nz = _lane(W, _L_nz, n, b)  # noqa: F821
+                a = a0 + b if a0 + b < N else a0
+                for i in range(n):
+                    nz[i] = noise[a, j, i] if has_noise else 0.0
+                if fl[_F_STOPPED] == 0.0:
+                    n_active += 1
+                    if check:
+                        any_check = True
+            if n_active == 0:
+                break
             for st in range(4):
-                if st == 0:
-                    ts = t
-                    kst = K0
-                    if not have_k0:
-                        _stage_input(st, x, K0, K1, dt, xs)
-                elif st == 1:
-                    ts = t + 0.5 * dt
-                    kst = K1
-                    _stage_input(st, x, K0, K1, dt, xs)
-                elif st == 2:
-                    ts = t + 0.75 * dt
-                    kst = K2
-                    _stage_input(st, x, K0, K1, dt, xs)
-                else:
-                    if not _ode3_update(x, K0, K1, K2, dt, divlim, xn, ep):
-                        diverged = 1
-                        halt = True
+                if st == 0 and any_fsal:
+                    # the check's evaluation at this state, with these inputs, was last step's: K3
+                    for b in range(LN):
+                        K0 = _lane(W, _L_K0, nx, b)  # noqa: F821
+                        K3 = _lane(W, _L_K3, nx, b)  # noqa: F821
+                        for i in range(nx):
+                            K0[i] = K3[i]
+                elif st == 3:
+                    # the update; a lane whose state turns non-finite or leaves the limit halts
+                    for b in range(LN):
+                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+                        ok = _ode3_update(_lane(W, _L_x, nx, b), _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b),  # noqa: F821
+                                          _lane(W, _L_K2, nx, b), dt, pl[2 * n + 1 + _DIVLIM],  # noqa: F821
+                                          _lane(W, _L_xn, nx, b), _lane(W, _L_ep, nx, b))  # noqa: F821
+                        fl[_F_OK] = 1.0 if ok else 0.0
+                    if not any_check:
                         break
-                    committed = True
-                    if not check:
-                        break
-                    ts = (k + 1) * dt  # the next step's time exactly as its stage 0 computes it
-                    kst = K3
-                    for i in range(nx):
-                        xs[i] = xn[i]
-                if not (st == 0 and have_k0):
-                    _stage(ts, xs, nz, y, res_b, plant_b, nom, same_arm, rp_b, bp_b, lg_b, og_b, fg_b,  # noqa: F821
-                           ref, bnd, cout, fout, rr, u, hu, satf, kst, pw, Mp, Lp, wl, wo)
+                if st > 0 or not any_fsal:
+                    for b in range(LN):
+                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        x = _lane(W, _L_x, nx, b)  # noqa: F821
+                        xs = _lane(W, _L_xs, nx, b)  # noqa: F821
+                        if st < 3:
+                            _stage_input(st, x, _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b), dt, xs)  # noqa: F821
+                        else:
+                            xn = _lane(W, _L_xn, nx, b)  # noqa: F821
+                            for i in range(nx):
+                                xs[i] = xn[i]
+                        k = np.int64(fl[_F_K0]) + j
+                        ts = _lane(W, _L_ts, 1, b)  # noqa: F821
+                        t = k * dt
+                        ts[0] = t if st == 0 else (t + 0.5 * dt if st == 1 else (t + 0.75 * dt if st == 2 else (k + 1) * dt))
+                        _stage_trig(ts[0], xs, _lane(W, _L_nz, n, b), _lane(W, _L_y, n, b), _lane(W, _L_rp, _NRP, b),  # noqa: F821
+                                    _lane(W, _L_plant, _NPL, b), _lane(W, _L_bp, _NBP, b), _lane(W, _L_ref, 3 * n, b),  # noqa: F821
+                                    _lane(W, _L_bnd, BOUND_LEN, b), _lane(W, _L_pw, _NPW, b),  # noqa: F821
+                                    _lane(W, _L_nom, nominal_length(n), b), _lane(W, _L_fr, n, b), n)  # noqa: F821
+                    kname = st  # which K the stage writes
+                    for b in range(LN):
+                        ts = _lane(W, _L_ts, 1, b)  # noqa: F821
+                        kst = _lane(W, _L_K0 + kname * nx, nx, b)  # noqa: F821
+                        _stage_rest(ts[0], _lane(W, _L_xs, nx, b), _lane(W, _L_y, n, b), _lane(W, _L_res, n, b),  # noqa: F821
+                                    _lane(W, _L_plant, _NPL, b), _lane(W, _L_nom, nominal_length(n), b),  # noqa: F821
+                                    _lane(W, _L_lg, _NLG, b), _lane(W, _L_og, _NOG, b), _lane(W, _L_fg, _NFG, b),  # noqa: F821
+                                    _lane(W, _L_ref, 3 * n, b), _lane(W, _L_bnd, BOUND_LEN, b),  # noqa: F821
+                                    _lane(W, _L_cout, _NOUT, b), _lane(W, _L_fout, _NFOUT, b), _lane(W, _L_rr, n, b),  # noqa: F821
+                                    _lane(W, _L_u, n, b), _lane(W, _L_hu, n, b), _lane(W, _L_satf, n, b), kst,  # noqa: F821
+                                    _lane(W, _L_pw, _NPW, b), _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b),  # noqa: F821
+                                    _lane(W, _L_wl, work_length(n), b), _lane(W, _L_wo, work_length(n), b),  # noqa: F821
+                                    _lane(W, _L_fr, n, b))  # noqa: F821
                 if st == 3:
                     # the embedded error estimate grows without bound when h is outside ODE3's
                     # stability region, even when the actuator limit keeps the state finite
-                    en = _error_ratio(ep, K3, xn, dt, err_atol, err_rtol)
-                    if en > err_max:
-                        err_max = en
-                    err_run, unstable = _instability(en, noisy, sps, err_run, unstable_steps)
-                    if unstable:
-                        diverged = 2
+                    for b in range(LN):
+                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        if fl[_F_STOPPED] != 0.0 or fl[_F_HALT] != 0.0 or fl[_F_OK] == 0.0 or fl[_F_CHECK] == 0.0:
+                            continue
+                        a = a0 + b
+                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+                        en = _error_ratio(_lane(W, _L_ep, nx, b), _lane(W, _L_K3, nx, b), _lane(W, _L_xn, nx, b), dt,  # noqa: F821
+                                          pl[2 * n + 1 + _ERR_ATOL], pl[2 * n + 1 + _ERR_RTOL])
+                        if en > sums[a, SUM_ERR_MAX]:
+                            sums[a, SUM_ERR_MAX] = en
+                        err_run, unstable = _instability(en, fl[_F_NOISY] != 0.0, sps, unstable_run[a],
+                                                         pl[2 * n + 1 + _UNSTABLE_STEPS])
+                        unstable_run[a] = err_run
+                        if unstable:
+                            status[a, ST_DIVERGED] = 2
                     continue
                 if st > 0:
                     continue
-                # bookkeeping at the step's start time t (state x)
-                if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
-                    halt = True
-                    if err_run > 0:
-                        # the bound broke while ODE3's error estimate was above tolerance: the
-                        # integration's violation, not the arm's (code 3, a divergence)
-                        diverged = 3
-                    break
-                if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
-                    st_b[ST_FILTER_BREACHES] += 1
-                if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
-                    st_b[ST_ASSUMPTION_FAILURES] += 1
-                if k % sps == 0:
-                    # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
-                    if recording:
-                        _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_b, x3, Mp, Lp, pw)
+                # bookkeeping at the step's start time t (state x), per lane
+                for b in range(LN):
+                    fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                    if fl[_F_STOPPED] != 0.0:
+                        continue
+                    a = a0 + b
+                    k = np.int64(fl[_F_K0]) + j
+                    x = _lane(W, _L_x, nx, b)  # noqa: F821
+                    ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
+                    bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
+                    u = _lane(W, _L_u, n, b)  # noqa: F821
+                    satf = _lane(W, _L_satf, n, b)  # noqa: F821
+                    cout = _lane(W, _L_cout, _NOUT, b)  # noqa: F821
+                    fout = _lane(W, _L_fout, _NFOUT, b)  # noqa: F821
+                    st_b = status[a]
+                    last_b = last[a]
+                    if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
+                        fl[_F_HALT] = 1.0
+                        if unstable_run[a] > 0:
+                            # the bound broke while ODE3's error estimate was above tolerance: the
+                            # integration's violation, not the arm's (code 3, a divergence)
+                            st_b[ST_DIVERGED] = 3
+                        continue
+                    if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
+                        st_b[ST_FILTER_BREACHES] += 1
+                    if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
+                        st_b[ST_ASSUMPTION_FAILURES] += 1
+                    if k % sps == 0:
+                        # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
+                        y = _lane(W, _L_y, n, b)  # noqa: F821
+                        x3 = _lane(W, _L_x3, n, b)  # noqa: F821
+                        K0 = _lane(W, _L_K0, nx, b)  # noqa: F821
+                        recording = nrec[a] < rec.shape[1]
+                        nom_a = nominal[a]
+                        if recording:
+                            _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_a, x3, _lane(W, _L_Mp, n * n, b),  # noqa: F821
+                                         _lane(W, _L_Lp, n * n, b), _lane(W, _L_pw, _NPW, b))  # noqa: F821
+                            for i in range(n):
+                                last_b[LAST_X3 * n + i] = x3[i]
+                        else:
+                            smp = _lane(W, _L_smp, 4 * n, b)  # noqa: F821
+                            for i in range(n):
+                                smp[i] = x[i]
+                                smp[n + i] = x[n + i]
+                                smp[2 * n + i] = K0[n + i]
+                                smp[3 * n + i] = u[i]
+                            fl[_F_PENDING] = 1.0
+                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+                        if accumulate_sample(x, y, ref, bnd, u, cout, pl[2 * n + 1 + _UMAX], sums[a], n):
+                            st_b[ST_VIOL_SAMPLES] += 1
                         for i in range(n):
-                            last_b[LAST_X3 * n + i] = x3[i]
-                    else:
-                        for i in range(n):
-                            smp[i] = x[i]
-                            smp[n + i] = x[n + i]
-                            smp[2 * n + i] = K0[n + i]
-                            smp[3 * n + i] = u[i]
-                        x3_pending = True
-                    if accumulate_sample(x, y, ref, bnd, u, cout, umax, sm_b, n):
-                        st_b[ST_VIOL_SAMPLES] += 1
+                            last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
+                        if recording:
+                            _record(rec[a, nrec[a]], k * dt, x, y, ref, bnd, u, _lane(W, _L_hu, n, b), cout[:n], satf,  # noqa: F821
+                                    x3, _X1H, _X2H, _X3H)  # noqa: F821
+                            nrec[a] += 1
                     for i in range(n):
-                        last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
-                    if recording:
-                        _record(rec[b, nrec[b]], t, x, y, ref, bnd, u, hu, ulaw, satf, x3,
-                                _X1H, _X2H, _X3H)  # noqa: F821
-                        nrec[b] += 1
-                        recording = nrec[b] < rec.shape[1]
+                        last_b[LAST_U * n + i] = u[i]
+                        last_b[LAST_ULAW * n + i] = cout[i]
+                        last_b[LAST_SAT * n + i] = satf[i]
+                    for i in range(_NOUT):  # noqa: F821
+                        last_b[N_LAST * n + i] = cout[i]
+                    for i in range(_NFOUT):  # noqa: F821
+                        last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
+            # commit, and who goes on
+            any_fsal = True
+            for b in range(LN):
+                fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+                if fl[_F_STOPPED] != 0.0:
+                    continue
+                a = a0 + b
+                if fl[_F_HALT] == 0.0 and fl[_F_OK] == 0.0:
+                    status[a, ST_DIVERGED] = 1
+                if fl[_F_HALT] == 0.0 and fl[_F_OK] != 0.0:
+                    x = _lane(W, _L_x, nx, b)  # noqa: F821
+                    xn = _lane(W, _L_xn, nx, b)  # noqa: F821
+                    for i in range(nx):
+                        x[i] = xn[i]
+                    status[a, ST_STEPS] += 1
+                if fl[_F_HALT] != 0.0 or status[a, ST_DIVERGED] != 0:
+                    fl[_F_STOPPED] = 1.0
+                    continue
+                # first-same-as-last: the check's evaluation is the next step's first one when the
+                # inputs are the same (no noise, and the residual is held for the whole call)
+                if not (fl[_F_CHECK] != 0.0 and fl[_F_NOISY] == 0.0 and j + 1 < n_steps):
+                    any_fsal = False
+        # after the last step, per arm
+        for b in range(LN):
+            a = a0 + b
+            if a >= N:
+                continue
+            fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
+            x = _lane(W, _L_x, nx, b)  # noqa: F821
+            x3 = _lane(W, _L_x3, n, b)  # noqa: F821
+            last_b = last[a]
+            st_b = status[a]
+            if fl[_F_PENDING] != 0.0:
+                smp = _lane(W, _L_smp, 4 * n, b)  # noqa: F821
+                _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nominal[a], x3,  # noqa: F821
+                             _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b), _lane(W, _L_pw, _NPW, b))  # noqa: F821
                 for i in range(n):
-                    last_b[LAST_U * n + i] = u[i]
-                    last_b[LAST_ULAW * n + i] = ulaw[i]
-                    last_b[LAST_SAT * n + i] = satf[i]
-                for i in range(_NOUT):  # noqa: F821
-                    last_b[N_LAST * n + i] = cout[i]
-                for i in range(_NFOUT):  # noqa: F821
-                    last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
-            if committed:
-                for i in range(nx):
-                    x[i] = xn[i]
-                steps += 1
-            if halt or diverged:
-                stopped = True
-                break
-            # first-same-as-last: the check's evaluation is the next step's first one when the
-            # inputs are the same (no noise, and the residual is held for the whole call)
-            have_k0 = check and not noisy and j + 1 < n_steps
-            if have_k0:
-                K0, K3 = K3, K0  # swap the views: no copy
-        if x3_pending:
-            _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nom_b, x3, Mp, Lp, pw)
-            for i in range(n):
-                last_b[LAST_X3 * n + i] = x3[i]
-        if not stopped:
-            t_end = (k0 + steps) * dt
-            reference_into(t_end, rp_b, arm_b, ref)
-            bounds_into(t_end, bp_b, bnd)
-            if _violates(x, ref, bnd, n):
-                st_b[ST_VIOL_STEPS] += 1
-                if st_b[ST_FIRST_VIOL] < 0:
-                    st_b[ST_FIRST_VIOL] = k0 + steps
-                if terminate and err_run > 0:
-                    diverged = 3  # as above: this violation ends the episode, on an unstable integration
-        ksteps[b] = k0 + steps
-        unstable_run[b] = err_run
-        st_b[ST_STEPS] = steps
-        st_b[ST_DIVERGED] = diverged
-        sm_b[SUM_ERR_MAX] = err_max
-
-
-def scratch_length(n: int, n_obs: int | None = None, n_ctrl: int = 0, n_out: int | None = None,
-                   n_fout: int = 0) -> int:
-    """Per-arm scratch the kernel needs (must match the views carved in _advance_template); the
-    default sizes are the LESO's 3n states, no controller states, the torque as only output and no
-    filter."""
-    n_obs = 3 * n if n_obs is None else n_obs
-    n_out = n if n_out is None else n_out
-    nx = 2 * n + n_obs + n_ctrl
-    return (7 * nx + 5 * n + BOUND_LEN + 4 * n + n_out + n_fout + n + 2 * n * n + nominal_length(n)
-            + (10 + WORK_PER_LINK) * n + n * n + 2 * work_length(n) + 4 * n)
+                    last_b[LAST_X3 * n + i] = x3[i]
+            steps = st_b[ST_STEPS]
+            k0 = np.int64(fl[_F_K0])
+            if fl[_F_STOPPED] == 0.0:
+                t_end = (k0 + steps) * dt
+                ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
+                bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
+                pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+                reference_into(t_end, _lane(W, _L_rp, _NRP, b), pl[: 2 * n + 1], ref)  # noqa: F821
+                bounds_into(t_end, _lane(W, _L_bp, _NBP, b), bnd)  # noqa: F821
+                if _violates(x, ref, bnd, n):
+                    st_b[ST_VIOL_STEPS] += 1
+                    if st_b[ST_FIRST_VIOL] < 0:
+                        st_b[ST_FIRST_VIOL] = k0 + steps
+                    if terminate and unstable_run[a] > 0:
+                        st_b[ST_DIVERGED] = 3  # as above: this violation ends the episode, on an unstable integration
+            for i in range(nx):
+                X[a, i] = x[i]
+            ksteps[a] = k0 + steps
 
 
 # ---------------------------------------------------------------------------------------------
@@ -676,10 +802,11 @@ _KERNELS: dict[tuple, object] = {}
 _NOTICED: set = set()
 
 
-def _specialise(conn: Connection):
-    """The compiled kernel for one connection (controller, observer, n): the templates cloned with
-    the generated glue and the sizes bound as globals, compiled with a disk cache."""
-    key = conn
+def _specialise(conn: Connection, lanes: int = LANES):
+    """The compiled kernel for one connection (controller, observer, n) and block width ``lanes``
+    (1 or :data:`LANES`): the templates cloned with the generated glue, the sizes and the block
+    layout bound as globals, compiled with a disk cache."""
+    key = (conn, lanes)
     if key not in _KERNELS:
         n = conn.n
         digest = hashlib.sha1((_source_digest() + conn.digest).encode()).hexdigest()[:10]
@@ -695,15 +822,27 @@ def _specialise(conn: Connection):
                  "_FILTER": conn.filter is not None, "_PLAIN": conn.plain, "_NFOUT": conn.n_fout,
                  "_BREACH": fo["breach"][0] if "breach" in fo else -1,
                  "_ASSUME": fo["assumptions"][0] if "assumptions" in fo else -1}
-        stage = _clone(_stage_template, f"stage__n{n}__{tag}",
-                       {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
-                        "_res_filter": conn.res_filter, **sizes}, inline="always")
-        kernel = _clone(_advance_template, f"advance__n{n}__{tag}", {"_stage": stage, **sizes}, nogil=True, _nrt=False)
+        layout = _layout(conn)
+        sizes.update({f"_L_{k}": o for k, (o, _) in layout.items() if k != "_total"})
+        sizes.update(_NPL=layout["plant"][1], _NRP=layout["rp"][1], _NBP=layout["bp"][1], _NLG=layout["lg"][1],
+                     _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
+                     _lane=_lane1 if lanes == 1 else _laneN)
+        rest = _clone(_stage_rest_template, f"stage__n{n}__{tag}",
+                      {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
+                       "_res_filter": conn.res_filter, **sizes}, inline="always")
+        kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}", {"_stage_rest": rest, **sizes}, nogil=True,
+                        _nrt=False)
         cache = _cache_dir(kernel)
         remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
-        remove_stale_cache(cache, f"advance__n{n}__{pair}__", digest)
+        remove_stale_cache(cache, f"advance{lanes}__n{n}__{pair}__", digest)
         _KERNELS[key] = kernel
     return _KERNELS[key]
+
+
+def _layout(conn: Connection) -> dict[str, tuple[int, int]]:
+    """:func:`lane_layout` for one connection."""
+    return lane_layout(conn.n, conn.n_obs, conn.n_ctrl, conn.n_out, conn.n_fout, len(conn.controller.gains),
+                       len(conn.observer.gains), len(conn.filter.gains) if conn.filter is not None else 0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -847,7 +986,9 @@ class ClosedLoop:
         self.plain = bool(plain)
         """With a filter: the residual passed to advance() is the agent's whole torque."""
         self.connection = connect(self.controller, self.observer, n, self.residual_filter, self.plain)
-        self._kernel = _specialise(self.connection)
+        self.lanes = LANES if len(scenarios) >= LANES else 1
+        """Arms per block of the batched kernel (one lane for fewer arms than :data:`LANES`)."""
+        self._kernel = _specialise(self.connection, self.lanes)
         fresh = not _is_cached(self._kernel)
         if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
@@ -866,7 +1007,8 @@ class ClosedLoop:
         self.last = np.zeros((self.N, N_LAST * n + c.n_out + c.n_fout))
         """Per arm, the columns of blf_gym.status.LAST_COLUMNS (n each), then the controller's
         outputs in its declared order (see :meth:`outputs`)."""
-        self._scratch = np.zeros((self.N, scratch_length(n, c.n_obs, c.n_ctrl, c.n_out, c.n_fout)))
+        self._block = _layout(c)["_total"][0] * self.lanes
+        self._scratch = np.zeros((-(-self.N // self.lanes), self._block))
         self._zeros_residual = np.zeros((self.N, n))
         self._no_noise = np.zeros((self.N, 0, n))
         self._no_record = np.zeros((self.N, 0, N_CHANNELS, n))
@@ -981,29 +1123,31 @@ class ClosedLoop:
         status = np.empty((N, N_STATUS), dtype=np.int64)  # every column is set by the kernel
         sums = np.empty((N, SUM_E2_JOINT + n))
         b = self._batch
-        if self.threads <= 1 or N == 1:
+        if self.threads <= 1 or self._scratch.shape[0] == 1:
             self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
                          b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains, res, nz, bool(terminate),
                          rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
             self.sums = sums
             return rec, nrec, status
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains,
-                  res, nz, rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
+                  res, nz, rec, nrec, status, self.last, sums, self.unstable_run)
+        L = self.lanes
 
         def run(lo: int, hi: int) -> None:
             a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
             self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
                          a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], bool(terminate),
-                         a[11], a[12], a[13], a[14], a[15], a[16], a[17])
+                         a[11], a[12], a[13], a[14], self._scratch[lo // L : -(-hi // L)], a[15], a[16])
 
-        # The kernel releases the GIL: contiguous blocks of arms run on parallel threads and write
-        # into views of the shared arrays. Each arm's arithmetic is the same as alone.
-        threads = min(self.threads, N)
+        # The kernel releases the GIL: whole blocks of arms run on parallel threads and write into
+        # views of the shared arrays. Each arm's arithmetic is the same as alone.
+        blocks = self._scratch.shape[0]
+        threads = min(self.threads, blocks)
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
             self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="blf")
-        edges = np.linspace(0, N, threads + 1).round().astype(int)
+        edges = np.minimum(np.linspace(0, blocks, threads + 1).round().astype(int) * L, N)
         futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
         for f in futures:
             f.result()
