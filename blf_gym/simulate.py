@@ -2,7 +2,10 @@
 
 One compiled kernel serves everything: the reproduction (one arm, a whole 30 s episode per call),
 the Gymnasium env (one arm, one agent period per call) and the vector env (N arms per call, split
-over threads: the compiled kernel releases the GIL). It is specialised per (controller law,
+over threads: the compiled kernel releases the GIL). A batch is stepped in blocks of
+:data:`LANES` arms in lockstep, laid out lanes innermost (:func:`lane_layout`) so that the per-arm
+code vectorises across arms; fewer arms than that use the same code compiled for one lane
+(docs/model.md section 6). It is specialised per (controller law,
 observer) pair by cloning the template functions below with the law and observer bound as
 globals, then compiled by numba with ``cache=True`` so a warm start loads machine code from disk.
 
@@ -12,7 +15,7 @@ over a step). Constraints are checked after every step; trajectories and metrics
 grid. A step outside ODE3's stability region is detected from the method's embedded error
 estimate, even when the actuator limit keeps the state finite.
 
-State layout per arm, ``X[b]`` (5n): ``[q, qd, x1_hat, x2_hat, x3_hat]``.
+State layout per arm, ``X[b]``: ``[q, qd, observer states, controller states]`` (5n with the LESO).
 """
 
 from __future__ import annotations
@@ -286,35 +289,31 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _stage_trig(ts, xs, nz, y, rp, plant, bp, ref, bnd, pw, nom, fr, n):
+def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, n, one_lane):
     """The part of a stage evaluation that calls the maths library (cos, sin, acos, atan2, exp),
     for one lane: the reference and the bounds at ``ts``, the measurement y, the cos and sin of the
     plant's and the nominal model's link angles, and the friction torques. It runs in a loop of its
     own, so that the rest of the stage, :func:`_stage_rest_template`, vectorises across lanes."""
-    nn = n * n
-    arm = plant[: 2 * n + 1]
     reference_into(ts, rp, arm, ref)
     bounds_into(ts, bp, bnd)
     same = True
     for i in range(n):
-        y[i] = xs[i] + nz[i]
-        if y[i] != xs[i]:
+        y[i] = q[i] + nz[i]
+        if y[i] != q[i]:
             same = False
-    trig = pw[4 * n : 6 * n]
-    abs_trig_into(xs[:n], trig)
-    ntrig = nom[nn + n : nn + 3 * n]
-    if same:  # without noise y == q: the same numbers abs_trig_into(y) would give
+    abs_trig_into(q, trig)
+    if one_lane and same:  # compiled for one lane only: a branch the lanes cannot take apart
         for i in range(2 * n):
             ntrig[i] = trig[i]
     else:
-        abs_trig_into(y, ntrig)
-    o = 2 * n + 1
+        abs_trig_into(y, ntrig)  # without noise y == q, and these are the same numbers
     for i in range(n):
-        fr[i] = friction(xs[n + i], plant[o + _VISC], plant[o + _COUL], plant[o + _PSI])
+        fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
+    return same
 
 
 def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, fout, rr, u, hu, satf, dx, pw, Mp,
-                         Lp, wl, wo, fr):
+                         Lp, wl, wo, fr, copy_model):
     """The rest of one evaluation of the closed-loop right-hand side at (ts, x) for one lane, into
     ``dx``, after :func:`_stage_trig`. Branch-free where the lanes may differ, so that a loop over
     the lanes vectorises.
@@ -325,8 +324,9 @@ def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, 
     ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
     ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter``
     turns the residual (with ``_PLAIN``, the agent's torque minus u_law) into ``fout[:n]``.
-    The nominal model is always evaluated at y, from the cos and sin :func:`_stage_trig` left in
-    it: when the nominal arm is the plant's and y == q this gives the plant's own numbers.
+    The nominal model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when
+    the nominal arm is the plant's and y == q that gives the plant's own numbers, which a one-lane
+    kernel copies instead (``copy_model``; in a block the lanes would take different branches).
     """
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nn = n * n
@@ -346,7 +346,14 @@ def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, 
     mass_matrix_into(trig, arm, Mp, pw)
     gravity_into(trig, arm, g, pw)
     ldl_factor_into(Mp, Lp)
-    nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
+    if copy_model:
+        for i in range(nn):
+            nom[i] = Mp[i]
+            nom[nn + 3 * n + i] = Lp[i]
+        for i in range(n):
+            nom[nn + i] = g[i]
+    else:
+        nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
     umax = plant[o + _UMAX]
     _ctrl_output(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     if _FILTER:  # noqa: F821 (compile-time constant)
@@ -384,7 +391,7 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
     """The per-lane entries of a block of the batched kernel, name -> (offset, length) in lane
     entries (a block of L entries per lane holds ``L * LANES`` numbers)."""
     nx = 2 * n + n_obs + n_ctrl
-    parts = [("K0", nx), ("K1", nx), ("K2", nx), ("K3", nx), ("xs", nx), ("xn", nx), ("ep", nx), ("x", nx),
+    parts = [("K0", nx), ("K1", nx), ("K2", nx), ("K3", nx), ("dx", nx), ("xs", nx), ("xn", nx), ("ep", nx), ("x", nx),
              ("y", n), ("nz", n), ("ref", 3 * n), ("bnd", BOUND_LEN), ("u", n), ("hu", n), ("satf", n),
              ("x3", n), ("cout", n_out), ("fout", n_fout), ("rr", n), ("Mp", n * n), ("Lp", n * n),
              ("nom", nominal_length(n)), ("pw", (10 + WORK_PER_LINK) * n + n * n), ("wl", work_length(n)),
@@ -400,8 +407,8 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
 
 
 # per-lane flags of a block (floats, 1.0 true)
-(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0) = range(7)
-_N_FLAGS = 7
+(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0, _F_SAME_ARM, _F_SAME_Y) = range(9)
+_N_FLAGS = 9
 
 
 def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
@@ -451,8 +458,11 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
             for i in range(_NPL):  # noqa: F821
                 pl[i] = plant[a, i]
             nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
+            same_arm = True
             for i in range(2 * n + 1):
                 nom[model_length(n) + i] = nominal[a, i]
+                if nominal[a, i] != plant[a, i]:
+                    same_arm = False
             v = _lane(W, _L_rp, _NRP, b)  # noqa: F821
             for i in range(_NRP):  # noqa: F821
                 v[i] = rp[a, i]
@@ -477,6 +487,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
             real = a0 + b < N
             fl[_F_STOPPED] = 0.0 if real else 1.0
             fl[_F_K0] = ksteps[a]
+            fl[_F_SAME_ARM] = 1.0 if same_arm else 0.0
             # a noisy arm's measurement changes every step: its check runs once per sample period
             noisy = False
             if has_noise:
@@ -535,28 +546,35 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                     if not any_check:
                         break
                 if st > 0 or not any_fsal:
+                    # the stage's time and state, then the two parts of the evaluation, each a
+                    # loop over the lanes with the same code for every lane (they vectorise)
                     for b in range(LN):
                         fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        x = _lane(W, _L_x, nx, b)  # noqa: F821
                         xs = _lane(W, _L_xs, nx, b)  # noqa: F821
                         if st < 3:
-                            _stage_input(st, x, _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b), dt, xs)  # noqa: F821
+                            _stage_input(st, _lane(W, _L_x, nx, b), _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b), dt,  # noqa: F821
+                                         xs)
                         else:
                             xn = _lane(W, _L_xn, nx, b)  # noqa: F821
                             for i in range(nx):
                                 xs[i] = xn[i]
                         k = np.int64(fl[_F_K0]) + j
-                        ts = _lane(W, _L_ts, 1, b)  # noqa: F821
                         t = k * dt
-                        ts[0] = t if st == 0 else (t + 0.5 * dt if st == 1 else (t + 0.75 * dt if st == 2 else (k + 1) * dt))
-                        _stage_trig(ts[0], xs, _lane(W, _L_nz, n, b), _lane(W, _L_y, n, b), _lane(W, _L_rp, _NRP, b),  # noqa: F821
-                                    _lane(W, _L_plant, _NPL, b), _lane(W, _L_bp, _NBP, b), _lane(W, _L_ref, 3 * n, b),  # noqa: F821
-                                    _lane(W, _L_bnd, BOUND_LEN, b), _lane(W, _L_pw, _NPW, b),  # noqa: F821
-                                    _lane(W, _L_nom, nominal_length(n), b), _lane(W, _L_fr, n, b), n)  # noqa: F821
-                    kname = st  # which K the stage writes
+                        _lane(W, _L_ts, 1, b)[0] = (t if st == 0 else (t + 0.5 * dt if st == 1 else  # noqa: F821
+                                                    (t + 0.75 * dt if st == 2 else (k + 1) * dt)))
+                    for b in range(LN):
+                        same_y = _stage_trig(_lane(W, _L_ts, 1, b)[0], _lane(W, _L_xs, n, b), _lane(W, _L_xs + n, n, b),  # noqa: F821
+                                    _lane(W, _L_nz, n, b), _lane(W, _L_y, n, b),  # noqa: F821
+                                    _lane(W, _L_rp, _NRP, b), _lane(W, _L_plant, 2 * n + 1, b),  # noqa: F821
+                                    _lane(W, _L_plant + 2 * n + 1, _NPL - 2 * n - 1, b), _lane(W, _L_bp, _NBP, b),  # noqa: F821
+                                    _lane(W, _L_ref, 3 * n, b), _lane(W, _L_bnd, BOUND_LEN, b),  # noqa: F821
+                                    _lane(W, _L_pw + 4 * n, 2 * n, b), _lane(W, _L_nom + n * n + n, 2 * n, b),  # noqa: F821
+                                    _lane(W, _L_fr, n, b), n, LN == 1)  # noqa: F821
+                        _lane(W, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
                     for b in range(LN):
                         ts = _lane(W, _L_ts, 1, b)  # noqa: F821
-                        kst = _lane(W, _L_K0 + kname * nx, nx, b)  # noqa: F821
+                        kst = _lane(W, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
+                        flb = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
                         _stage_rest(ts[0], _lane(W, _L_xs, nx, b), _lane(W, _L_y, n, b), _lane(W, _L_res, n, b),  # noqa: F821
                                     _lane(W, _L_plant, _NPL, b), _lane(W, _L_nom, nominal_length(n), b),  # noqa: F821
                                     _lane(W, _L_lg, _NLG, b), _lane(W, _L_og, _NOG, b), _lane(W, _L_fg, _NFG, b),  # noqa: F821
@@ -565,7 +583,15 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                                     _lane(W, _L_u, n, b), _lane(W, _L_hu, n, b), _lane(W, _L_satf, n, b), kst,  # noqa: F821
                                     _lane(W, _L_pw, _NPW, b), _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b),  # noqa: F821
                                     _lane(W, _L_wl, work_length(n), b), _lane(W, _L_wo, work_length(n), b),  # noqa: F821
-                                    _lane(W, _L_fr, n, b))  # noqa: F821
+                                    _lane(W, _L_fr, n, b),  # noqa: F821
+                                    LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0)
+                    # into K0..K3: apart, since a view at an offset that depends on st would keep
+                    # LLVM from proving the lanes of the loop above independent
+                    for b in range(LN):
+                        kst = _lane(W, _L_K0 + st * nx, nx, b)  # noqa: F821
+                        dxs = _lane(W, _L_dx, nx, b)  # noqa: F821
+                        for i in range(nx):
+                            kst[i] = dxs[i]
                 if st == 3:
                     # the embedded error estimate grows without bound when h is outside ODE3's
                     # stability region, even when the actuator limit keeps the state finite
