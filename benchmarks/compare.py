@@ -10,7 +10,8 @@ compared. Three figures, each the median within its process:
 * ``env_us``: the residual ``env.step`` through ``gym.make`` (100 integration steps);
 * ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads;
 * ``batch64_us``: one closed-loop step per arm, amortised over a batch of 64 mixed training-suite
-  scenarios with measurement noise on, on one thread (100-step calls, the env's control period).
+  scenarios with measurement noise on, on one thread (100-step calls, the env's control period),
+  in blocks of 4 lanes where the tree has them.
 
 Run:  python benchmarks/compare.py BASE_TREE NEW_TREE [--rounds 5]
 e.g.  git worktree add /tmp/base HEAD~1 && python benchmarks/compare.py /tmp/base .
@@ -74,7 +75,10 @@ for _ in range(40):
 
 from blf_gym.scenarios import sample_suite
 mixed = [sample_suite(np.random.default_rng(s)) for s in range(64)]
-batch = ClosedLoop(mixed, "proposed", threads=1)
+try:
+    batch = ClosedLoop(mixed, "proposed", threads=1, lanes=4)
+except TypeError:  # a tree from before the lanes
+    batch = ClosedLoop(mixed, "proposed", threads=1)
 noise = np.random.default_rng(0).normal(size=(64, 100, 3)) * np.radians(0.01)
 batch.advance(100, noise=noise, record_samples=0)
 bs = []

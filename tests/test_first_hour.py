@@ -183,7 +183,8 @@ def test_the_compile_notice_names_numba_s_real_cache_and_is_printed_once(tmp_pat
            "--duration", "0.01", "--no-progress"]
     first = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert first.returncode == 0, first.stderr
-    assert "compiling the closed loop for the bc law, with the leso observer (first run only" in first.stderr
+    assert ("compiling the closed loop for the bc law, with the leso observer, stepping one arm (first run only"
+            in first.stderr)
     assert str(tmp_path / "cache") in first.stderr
     second = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
     assert second.returncode == 0 and "compiling" not in second.stderr

@@ -70,14 +70,12 @@ def _run(loop, arms, inputs, resets):
     return log
 
 
-@pytest.mark.parametrize("filtered", [False, True], ids=["law", "barrier_filter"])
-def test_each_arm_of_a_mixed_batch_equals_the_arm_alone(filtered):
+def test_each_arm_of_a_mixed_batch_equals_the_arm_alone():
     assert N % LANES != 0  # the last block has padding lanes
     scs = _mixed()
     inputs = _inputs()
     resets = {a: sc for a, sc in zip(range(0, N, 4), _scenarios(range(100, 104)))}
-    kw = {"residual_filter": "barrier"} if filtered else {}
-    batch = ClosedLoop(scs, "proposed", threads=2, **kw)
+    batch = ClosedLoop(scs, "proposed", threads=2, lanes=LANES)
     assert batch.lanes == LANES
     together = _run(batch, list(range(N)), inputs, resets)
     # the mixture this test is about actually happened
@@ -85,9 +83,14 @@ def test_each_arm_of_a_mixed_batch_equals_the_arm_alone(filtered):
     assert first[2, 1] == 1 and first[5, 1] == 2
     assert together[1]["status"][7, 2] > 0 and together[1]["status"][7, 0] < CALLS[1]
     for a in range(N):
-        single = ClosedLoop([scs[a]], "proposed", threads=1, **kw)
+        single = ClosedLoop([scs[a]], "proposed", threads=1)
         assert single.lanes == 1
         alone = _run(single, [a], inputs, resets)
         for c, (t, s) in enumerate(zip(together, alone)):
             for key in t:
                 np.testing.assert_array_equal(t[key][a : a + 1], s[key], err_msg=f"arm {a}, call {c}, {key}")
+
+
+def test_lanes_is_checked():
+    with pytest.raises(ValueError, match="lanes must be 1 or"):
+        ClosedLoop([preset("paper-0.1hz")], "proposed", lanes=3)
