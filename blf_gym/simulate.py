@@ -387,6 +387,13 @@ def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, 
     _ctrl_update(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _copy(src, dst):
+    """dst[:] = src[:len(dst)] (the kernel allocates nothing, so no slice assignment)."""
+    for i in range(dst.shape[0]):
+        dst[i] = src[i]
+
+
 def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_gains: int, n_obs_gains: int,
                 n_filter_gains: int) -> dict[str, tuple[int, int]]:
     """The per-lane entries of a block of the batched kernel, name -> (offset, length) in lane
@@ -452,36 +459,20 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
         # load the lanes (a padding lane past the last arm copies the block's first arm, inactive)
         for b in range(LN):
             a = a0 + b if a0 + b < N else a0
-            x = _lane(W, _L_x, nx, b)  # noqa: F821
-            for i in range(nx):
-                x[i] = X[a, i]
-            pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-            for i in range(_NPL):  # noqa: F821
-                pl[i] = plant[a, i]
+            _copy(X[a], _lane(W, _L_x, nx, b))  # noqa: F821
+            _copy(plant[a], _lane(W, _L_plant, _NPL, b))  # noqa: F821
             nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
             same_arm = True
             for i in range(2 * n + 1):
                 nom[model_length(n) + i] = nominal[a, i]
                 if nominal[a, i] != plant[a, i]:
                     same_arm = False
-            v = _lane(W, _L_rp, _NRP, b)  # noqa: F821
-            for i in range(_NRP):  # noqa: F821
-                v[i] = rp[a, i]
-            v = _lane(W, _L_bp, _NBP, b)  # noqa: F821
-            for i in range(_NBP):  # noqa: F821
-                v[i] = bp[a, i]
-            v = _lane(W, _L_lg, _NLG, b)  # noqa: F821
-            for i in range(_NLG):  # noqa: F821
-                v[i] = lg[a, i]
-            v = _lane(W, _L_og, _NOG, b)  # noqa: F821
-            for i in range(_NOG):  # noqa: F821
-                v[i] = og[a, i]
-            v = _lane(W, _L_fg, _NFG, b)  # noqa: F821
-            for i in range(_NFG):  # noqa: F821
-                v[i] = fgains[a, i]
-            v = _lane(W, _L_res, n, b)  # noqa: F821
-            for i in range(n):
-                v[i] = residual[a, i]
+            _copy(rp[a], _lane(W, _L_rp, _NRP, b))  # noqa: F821
+            _copy(bp[a], _lane(W, _L_bp, _NBP, b))  # noqa: F821
+            _copy(lg[a], _lane(W, _L_lg, _NLG, b))  # noqa: F821
+            _copy(og[a], _lane(W, _L_og, _NOG, b))  # noqa: F821
+            _copy(fgains[a], _lane(W, _L_fg, _NFG, b))  # noqa: F821
+            _copy(residual[a], _lane(W, _L_res, n, b))  # noqa: F821
             fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
             for i in range(_N_FLAGS):
                 fl[i] = 0.0
@@ -531,10 +522,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                 if st == 0 and any_fsal:
                     # the check's evaluation at this state, with these inputs, was last step's: K3
                     for b in range(LN):
-                        K0 = _lane(W, _L_K0, nx, b)  # noqa: F821
-                        K3 = _lane(W, _L_K3, nx, b)  # noqa: F821
-                        for i in range(nx):
-                            K0[i] = K3[i]
+                        _copy(_lane(W, _L_K3, nx, b), _lane(W, _L_K0, nx, b))  # noqa: F821
                 elif st == 3:
                     # the update; a lane whose state turns non-finite or leaves the limit halts
                     for b in range(LN):
@@ -556,9 +544,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                             _stage_input(st, _lane(W, _L_x, nx, b), _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b), dt,  # noqa: F821
                                          xs)
                         else:
-                            xn = _lane(W, _L_xn, nx, b)  # noqa: F821
-                            for i in range(nx):
-                                xs[i] = xn[i]
+                            _copy(_lane(W, _L_xn, nx, b), xs)  # noqa: F821
                         k = np.int64(fl[_F_K0]) + j
                         t = k * dt
                         _lane(W, _L_ts, 1, b)[0] = (t if st == 0 else (t + 0.5 * dt if st == 1 else  # noqa: F821
@@ -589,10 +575,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                     # into K0..K3: apart, since a view at an offset that depends on st would keep
                     # LLVM from proving the lanes of the loop above independent
                     for b in range(LN):
-                        kst = _lane(W, _L_K0 + st * nx, nx, b)  # noqa: F821
-                        dxs = _lane(W, _L_dx, nx, b)  # noqa: F821
-                        for i in range(nx):
-                            kst[i] = dxs[i]
+                        _copy(_lane(W, _L_dx, nx, b), _lane(W, _L_K0 + st * nx, nx, b))  # noqa: F821
                 if st == 3:
                     # the embedded error estimate grows without bound when h is outside ODE3's
                     # stability region, even when the actuator limit keeps the state finite
@@ -688,10 +671,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                 if fl[_F_HALT] == 0.0 and fl[_F_OK] == 0.0:
                     status[a, ST_DIVERGED] = 1
                 if fl[_F_HALT] == 0.0 and fl[_F_OK] != 0.0:
-                    x = _lane(W, _L_x, nx, b)  # noqa: F821
-                    xn = _lane(W, _L_xn, nx, b)  # noqa: F821
-                    for i in range(nx):
-                        x[i] = xn[i]
+                    _copy(_lane(W, _L_xn, nx, b), _lane(W, _L_x, nx, b))  # noqa: F821
                     status[a, ST_STEPS] += 1
                 if fl[_F_HALT] != 0.0 or status[a, ST_DIVERGED] != 0:
                     fl[_F_STOPPED] = 1.0
@@ -731,8 +711,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         st_b[ST_FIRST_VIOL] = k0 + steps
                     if terminate and unstable_run[a] > 0:
                         st_b[ST_DIVERGED] = 3  # as above: this violation ends the episode, on an unstable integration
-            for i in range(nx):
-                X[a, i] = x[i]
+            _copy(x, X[a])
             ksteps[a] = k0 + steps
 
 
