@@ -20,8 +20,10 @@ State layout per arm, ``X[b]``: ``[q, qd, observer states, controller states]`` 
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
+import sys
 import time
 import types
 from dataclasses import dataclass
@@ -788,10 +790,43 @@ def kernel_label(controller: str, observer: str, residual_filter: str | None = N
 def compile_notice(label: str, cache: Path) -> None:
     """Tell the user why the first run waits (printed once per kernel, on standard error); ``label``
     is :func:`kernel_label`'s."""
-    import sys
-
     print(f"blf-gym: compiling the closed loop for {label} (first run only, about 15-50 s; "
           f"cached in {cache})", file=sys.stderr, flush=True)
+
+
+@contextlib.contextmanager
+def _compile_lock(kernel):
+    """Hold an exclusive lock on one kernel's entry in numba's cache while it compiles, so that
+    processes started together (pytest workers, sweep trials, subprocess vector envs) compile it
+    once: the others wait, then load it from the cache. Without ``fcntl`` (not POSIX) or with a
+    cache folder that cannot hold the lock file, each process compiles its own, as before."""
+    try:
+        import fcntl
+    except ImportError:
+        fcntl = None
+    f = None
+    if fcntl is not None:
+        # named like the kernel's cache files, so that remove_stale_cache drops it with them
+        path = _cache_dir(kernel) / f"simulate.{kernel.py_func.__qualname__}-compile.lock"
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            f = open(path, "a")
+        except OSError:
+            f = None
+    if f is None:
+        yield
+        return
+    with f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print("blf-gym: another process is compiling the same closed loop; waiting for it",
+                  file=sys.stderr, flush=True)
+            fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _clone(template, name: str, bindings: dict, **jit_options):
@@ -1031,7 +1066,8 @@ class ClosedLoop:
         self._no_record = np.zeros((self.N, 0, N_CHANNELS, n))
         self.set_scenarios(scenarios)
         if fresh:
-            self._compile()
+            with _compile_lock(self._kernel):
+                self._compile()  # after another process built it: loaded from numba's cache
 
     def _compile(self) -> None:
         """Compile the kernel now (a call of zero steps), reporting a plug-in numba cannot compile as

@@ -27,6 +27,8 @@ reaches (the divergence limit stops a run at 1e6).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 from numba import types as nbtypes
@@ -218,5 +220,5 @@ def atan2(y, x):
     # the octant: pi/2 - a when |y| > |x|, then pi - that when x < 0
     a = (_PIO2_HI - (a - _PIO2_LO)) if swap else a
     a = (_PI - (a - 2.0 * _PIO2_LO)) if x < 0.0 else a
-    a = -a if y < 0.0 else a
+    a = math.copysign(a, y)  # the sign bit of y, so that atan2(-0.0, -1.0) = -pi as in C
     return a if (x == x and y == y) else np.nan

@@ -169,47 +169,14 @@ def _policy_bytes(run: Path) -> bytes:
         return z.read("policy.pth")
 
 
-def test_smoke_sweep_ranks_its_trials_and_a_trial_is_a_direct_blf_train_run(tmp_path):
+def test_an_interrupted_smoke_sweep_resumes_ranks_its_trials_and_a_trial_is_a_direct_blf_train_run(tmp_path):
+    """The shipped smoke sweep, stopped by Ctrl-C once its first trial finished (one trial at a
+    time), then resumed by the same command with trials in parallel: the finished trial is kept,
+    the sweep completes and ranks its configurations, and the finished trial equals a direct
+    blf-train run of its recorded command bit for bit."""
     from agents.sweep import law_levels
 
     out = tmp_path / "smoke"
-    p = _run("agents.sweep", str(SMOKE), "--out", str(out))
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert "blf-sweep: finished" in p.stderr and "4 done" in p.stderr
-    res = json.loads((out / "sweep.json").read_text())
-    assert res["counts"]["done"] == 4 and len(res["trials"]) == 4 and len(res["configs"]) == 2
-    assert res["spec"]["name"] == "smoke" and res["versions"] and "git_commit" in res
-    # the ranking: the higher mean objective first, every configuration with both seeds
-    objs = [c["objective"] for c in res["configs"]]
-    assert objs == sorted(objs, reverse=True)
-    assert all(c["seeds"] == [0, 1] for c in res["configs"])
-    # each trial's score recomputed from its curve and the law, independently of the sweep's code:
-    # 1 / the geometric mean of the nine per-joint RMSE ratios
-    law = law_levels(2, 2.0)
-    assert res["law"] == law  # the same code path on the same machine: equal
-    for t in res["trials"]:
-        curve = json.loads((out / "runs" / t["run"] / "eval" / "curve.json").read_text())["points"]
-        assert curve[-1]["timesteps"] == 2048
-        ratios = np.concatenate([np.asarray(curve[-1][g]["rmse_deg"]) / law[g] for g in GROUPS])
-        assert t["score"]["score_vs_law"] == pytest.approx(1 / np.exp(np.mean(np.log(ratios))), rel=1e-12)
-    md = (out / "sweep.md").read_text()
-    assert md.count("| smoke-") == 4 and "| 1 | " in md and "| 2 | " in md
-    # one trial against a direct blf-train with its recorded config, seed and budget
-    t = res["trials"][0]
-    run = out / "runs" / t["run"]
-    cmd = t["command"].split()
-    assert cmd[0] == "blf-train" and cmd[cmd.index("--out") + 1] == str(run)
-    cmd[cmd.index("--out") + 1] = str(tmp_path / "direct")
-    d = _run("agents.train", *cmd[1:])
-    assert d.returncode == 0, d.stderr[-3000:]
-    direct = json.loads((tmp_path / "direct" / "eval" / "curve.json").read_text())["points"]
-    trial = json.loads((run / "eval" / "curve.json").read_text())["points"]
-    assert _strip(direct) == _strip(trial)  # bit-identical metrics (JSON floats round-trip exactly)
-    assert _policy_bytes(tmp_path / "direct") == _policy_bytes(run)
-
-
-def test_an_interrupted_sweep_resumes_and_keeps_its_finished_trials(tmp_path):
-    out = tmp_path / "sw"
     proc = subprocess.Popen([sys.executable, "-m", "agents.sweep", str(SMOKE), "--out", str(out),
                              "--concurrency", "1"], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
@@ -231,13 +198,41 @@ def test_an_interrupted_sweep_resumes_and_keeps_its_finished_trials(tmp_path):
     assert proc.returncode == 130, text[-3000:]
     assert "run the same command to resume" in text
     before = json.loads((first / "metadata.json").read_text())
-    p = _run("agents.sweep", str(SMOKE), "--out", str(out), "--concurrency", "1")
+    p = _run("agents.sweep", str(SMOKE), "--out", str(out), "--concurrency", "2")
     assert p.returncode == 0, p.stderr[-3000:]
     assert "resuming" in p.stderr
-    res = json.loads((out / "sweep.json").read_text())
-    assert res["counts"]["done"] == 4
+    assert "blf-sweep: finished" in p.stderr and "4 done" in p.stderr
     after = json.loads((first / "metadata.json").read_text())
     assert after["segments"] == before["segments"]  # the finished trial was not trained again
+    res = json.loads((out / "sweep.json").read_text())
+    assert res["counts"]["done"] == 4 and len(res["trials"]) == 4 and len(res["configs"]) == 2
+    assert res["spec"]["name"] == "smoke" and res["versions"] and "git_commit" in res
+    # the ranking: the higher mean objective first, every configuration with both seeds
+    objs = [c["objective"] for c in res["configs"]]
+    assert objs == sorted(objs, reverse=True)
+    assert all(c["seeds"] == [0, 1] for c in res["configs"])
+    # each trial's score recomputed from its curve and the law, independently of the sweep's code:
+    # 1 / the geometric mean of the nine per-joint RMSE ratios
+    law = law_levels(2, 2.0)
+    assert res["law"] == law  # the same code path on the same machine: equal
+    for t in res["trials"]:
+        curve = json.loads((out / "runs" / t["run"] / "eval" / "curve.json").read_text())["points"]
+        assert curve[-1]["timesteps"] == 2048
+        ratios = np.concatenate([np.asarray(curve[-1][g]["rmse_deg"]) / law[g] for g in GROUPS])
+        assert t["score"]["score_vs_law"] == pytest.approx(1 / np.exp(np.mean(np.log(ratios))), rel=1e-12)
+    md = (out / "sweep.md").read_text()
+    assert md.count("| smoke-") == 4 and "| 1 | " in md and "| 2 | " in md
+    # the trial that ran in one go against a direct blf-train with its recorded config, seed and budget
+    t = next(t for t in res["trials"] if out / "runs" / t["run"] == first)
+    cmd = t["command"].split()
+    assert cmd[0] == "blf-train" and cmd[cmd.index("--out") + 1] == str(first)
+    cmd[cmd.index("--out") + 1] = str(tmp_path / "direct")
+    d = _run("agents.train", *cmd[1:])
+    assert d.returncode == 0, d.stderr[-3000:]
+    direct = json.loads((tmp_path / "direct" / "eval" / "curve.json").read_text())["points"]
+    trial = json.loads((first / "eval" / "curve.json").read_text())["points"]
+    assert _strip(direct) == _strip(trial)  # bit-identical metrics (JSON floats round-trip exactly)
+    assert _policy_bytes(tmp_path / "direct") == _policy_bytes(first)
     # a different sweep into the same folder is refused
     other = tmp_path / "other.yaml"
     other.write_text(SMOKE.read_text().replace("search_seed: 0", "search_seed: 1").replace(

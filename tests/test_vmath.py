@@ -99,6 +99,15 @@ def test_special_values():
     assert np.isnan(_ours("atan2", [nan, 1.0], [1.0, nan])).all()
 
 
+def test_atan2_keeps_the_sign_of_a_zero_y():
+    # C's atan2 reads y's sign bit: atan2(-0, -1) = -pi, atan2(-0, 1) = -0 (C99 Annex F.9.1.4)
+    y = np.array([0.0, -0.0, 0.0, -0.0, 0.0, -0.0])
+    x = np.array([-1.0, -1.0, 1.0, 1.0, -1e300, 1e-300])
+    ours = _ours("atan2", y, x)
+    np.testing.assert_array_equal(ours, np.arctan2(y, x))
+    assert (np.signbit(ours) == np.signbit(y)).all()
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-1e5, 1e5))
 def test_sin_cos_hypothesis(x):
