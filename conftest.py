@@ -58,5 +58,5 @@ def _suite_kernels_split_between_workers():
         try:
             ClosedLoop([preset("paper-0.1hz")], controller, observer, threads=1, residual_filter=filt, plain=plain,
                        lanes=lanes)
-        except (ValueError, KeyError, LookupError):
+        except (ValueError, LookupError):  # not installed here
             pass
