@@ -13,6 +13,7 @@ reach the env. Construction does not run the simulation, so these are fast.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import re
 import warnings
@@ -247,7 +248,9 @@ def _unknown_key(field_for):
         lambda k: ({k: 1.0}, field_for(k)))
 
 
-RW_FIELDS = ("tracking", "torque", "alive", "violation", "relative", "relative_cap", "law_baseline")
+# every field of RewardWeights, read from the dataclass (a hand-written list missed ``score``, and
+# Hypothesis then drew "score" as an unknown key that the env rightly accepts)
+RW_FIELDS = tuple(f.name for f in dataclasses.fields(RewardWeights))
 
 
 def bad_reward_field(name: str):
