@@ -316,7 +316,7 @@ def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, 
 
 
 def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, fout, rr, u, hu, satf, dx, pw, Mp,
-                         Lp, wl, wo, fr, copy_model):
+                         Lp, wl, wo, fr, copy_model, plain):
     """The rest of one evaluation of the closed-loop right-hand side at (ts, x) for one lane, into
     ``dx``, after :func:`_stage_trig`. Branch-free where the lanes may differ, so that a loop over
     the lanes vectorises.
@@ -326,7 +326,7 @@ def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, 
     ``x`` = [q, qd, observer states, controller states]. ``_ctrl_output``, ``_obs_rhs`` and
     ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
     ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter``
-    turns the residual (with ``_PLAIN``, the agent's torque minus u_law) into ``fout[:n]``.
+    turns the residual (with ``plain``, a runtime flag, the agent's torque minus u_law) into ``fout[:n]``.
     The nominal model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when
     the nominal arm is the plant's and y == q that gives the plant's own numbers, which a one-lane
     kernel copies instead (``copy_model``; in a block the lanes would take different branches).
@@ -361,7 +361,7 @@ def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, 
     _ctrl_output(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     if _FILTER:  # noqa: F821 (compile-time constant)
         for i in range(n):
-            rr[i] = res[i] - cout[i] if _PLAIN else res[i]  # noqa: F821
+            rr[i] = res[i] - cout[i] if plain else res[i]
         _res_filter(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
     for i in range(n):
         ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
@@ -422,7 +422,7 @@ _N_FLAGS = 9
 
 
 def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
-                    noise, terminate, rec, nrec, status, last, scratch, sums, unstable_run):
+                    noise, terminate, plain, rec, nrec, status, last, scratch, sums, unstable_run):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``, the arms
     in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
     :func:`lane_layout`, lanes innermost).
@@ -573,7 +573,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                                     _lane(W, _L_pw, _NPW, b), _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b),  # noqa: F821
                                     _lane(W, _L_wl, work_length(n), b), _lane(W, _L_wo, work_length(n), b),  # noqa: F821
                                     _lane(W, _L_fr, n, b),  # noqa: F821
-                                    LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0)
+                                    LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0, plain)
                     # into K0..K3: apart, since a view at an offset that depends on st would keep
                     # LLVM from proving the lanes of the loop above independent
                     for b in range(LN):
@@ -778,12 +778,12 @@ def remove_stale_cache(cache: Path, prefix: str, digest: str) -> list[Path]:
     return gone
 
 
-def kernel_label(controller: str, observer: str, residual_filter: str | None = None, plain: bool = False) -> str:
+def kernel_label(controller: str, observer: str, residual_filter: str | None = None) -> str:
     """A compiled closed loop in a user's words: the law (or none, for plain torques), the filter and
-    what it acts on, the observer."""
+    what it acts on, the observer. One build of a filtered loop serves both of the filter's uses."""
     law = "plain torques (no inner law)" if controller == "none" else f"the {controller} law"
     filt = ("" if residual_filter is None else
-            f", its {residual_filter} filter on the agent's {'whole torque' if plain else 'residual'}")
+            f", its {residual_filter} filter (on the agent's residual, or in plain mode its whole torque)")
     return f"{law}{filt}, with the {observer} observer"
 
 
@@ -853,14 +853,14 @@ def _specialise(conn: Connection, lanes: int = LANES):
         digest = hashlib.sha1((_source_digest() + conn.digest).encode()).hexdigest()[:10]
         pair = f"{conn.controller.name}__{conn.observer.name}"
         if conn.filter is not None:
-            pair += f"__{conn.filter.name}{'_plain' if conn.plain else ''}"
+            pair += f"__{conn.filter.name}"
         tag = f"{pair}__{digest}"
         off = {k: 2 * n + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
                for k in ("x1_hat", "x2_hat", "x3_hat")}
         fo = conn.fout_offsets
         sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": 2 * n + conn.n_obs + conn.n_ctrl,
                  "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"],
-                 "_FILTER": conn.filter is not None, "_PLAIN": conn.plain, "_NFOUT": conn.n_fout,
+                 "_FILTER": conn.filter is not None, "_NFOUT": conn.n_fout,
                  "_BREACH": fo["breach"][0] if "breach" in fo else -1,
                  "_ASSUME": fo["assumptions"][0] if "assumptions" in fo else -1}
         layout = _layout(conn)
@@ -1033,9 +1033,12 @@ class ClosedLoop:
             raise ValueError("controller/observer nominal model must have as many links as the plant")
         self.residual_filter = self.controller.make_filter(residual_filter)
         """The residual filter between the residual and the actuator (None: none)."""
+        if plain and self.residual_filter is None:
+            raise ValueError("ClosedLoop: plain=True needs a residual filter (it acts on the agent's torque minus the law's)")
         self.plain = bool(plain)
-        """With a filter: the residual passed to advance() is the agent's whole torque."""
-        self.connection = connect(self.controller, self.observer, n, self.residual_filter, self.plain)
+        """With a filter: the residual passed to advance() is the agent's whole torque, and the filter
+        sees it minus the law's. A runtime flag: the residual and the plain mode share one build."""
+        self.connection = connect(self.controller, self.observer, n, self.residual_filter)
         self.lanes = int(lanes)
         """Arms per block of the kernel (1 or :data:`LANES`)."""
         self._kernel = _specialise(self.connection, self.lanes)
@@ -1043,7 +1046,7 @@ class ClosedLoop:
         if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
             label = kernel_label(self.controller.name, self.observer.name,
-                                 self.residual_filter.name if self.residual_filter else None, self.plain)
+                                 self.residual_filter.name if self.residual_filter else None)
             # a batch's kernel and a single arm's are two builds of the same code: say which
             label += ", stepping one arm" if self.lanes == 1 else f", stepping {self.lanes} arms at once"
             compile_notice(label, _cache_dir(self._kernel))
@@ -1179,7 +1182,7 @@ class ClosedLoop:
         if self.threads <= 1 or self._scratch.shape[0] == 1:
             self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
                          b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains, res, nz, bool(terminate),
-                         rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
+                         self.plain, rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
             self.sums = sums
             return rec, nrec, status
         arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains,
@@ -1189,7 +1192,7 @@ class ClosedLoop:
         def run(lo: int, hi: int) -> None:
             a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
             self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
-                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], bool(terminate),
+                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], bool(terminate), self.plain,
                          a[11], a[12], a[13], a[14], self._scratch[lo // L : -(-hi // L)], a[15], a[16])
 
         # The kernel releases the GIL: whole blocks of arms run on parallel threads and write into

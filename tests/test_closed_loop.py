@@ -264,3 +264,14 @@ def test_building_one_kernel_leaves_the_others_in_the_disk_cache():
     ClosedLoop([sc], "proposed", threads=1).advance(10)
     for loop in loops:
         assert Path(loop._kernel._cache._cache_file._index_path).is_file(), loop._kernel.__name__
+    # the filter's two uses, on a residual and on a plain agent's whole torque, are one build (plain
+    # is a runtime flag), and the flag is real: the same input is filtered differently
+    assert loops[1]._kernel is loops[2]._kernel and loops[0]._kernel is not loops[1]._kernel
+    u = []
+    for loop in loops[1:]:
+        loop.set_scenarios([sc])
+        loop.advance(20, residual=np.full((1, 3), 5.0))
+        u.append(loop.last.copy())
+    assert not np.array_equal(u[0], u[1])
+    with pytest.raises(ValueError, match="plain=True needs a residual filter"):
+        ClosedLoop([sc], "proposed", threads=1, plain=True)

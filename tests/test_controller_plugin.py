@@ -70,6 +70,7 @@ def test_gravity_by_hand_matches_a_two_link_textbook_formula():
     np.testing.assert_allclose(_gravity_by_hand(q, arm), want, rtol=1e-14)
 
 
+@pytest.mark.slow
 def test_user_law_runs_in_the_closed_loop(runs):
     mine, _ = runs
     assert not mine.diverged, mine.message
@@ -238,6 +239,7 @@ def test_reading_the_commanded_torque_in_the_output_is_refused():
     _refused("'u'", lambda: connect(Controller("loop", out), make_observer("leso"), 3))
 
 
+@pytest.mark.slow
 def test_code_numba_cannot_compile_is_reported_against_the_plug_in():
     def out(y, u_law):
         names = {"a": 1.0}  # a dict of Python objects: fine in Python, not in the kernel

@@ -192,6 +192,7 @@ def test_plain_default_reward_is_the_log_score_and_a_violation_always_loses():
             assert term and ret <= -50.0
 
 
+@pytest.mark.slow
 def test_plain_default_reward_at_0_1_ms_with_the_law_as_a_policy():
     """The README's plain-env call at control_period=1e-4: the proposed law as an SB3-style policy
     (baselines.policies) stays inside the bounds and returns log score_vs_law, near 0 (it is the
@@ -284,6 +285,7 @@ def test_every_shipped_agent_loads_by_name_and_records_how_it_was_chosen(name):
 # ---- rl-zoo3 ------------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_rl_zoo3_trains_the_zoo_config_and_evaluates_on_the_same_kwargs(tmp_path):
     pytest.importorskip("rl_zoo3", reason="rl-zoo3 is in the zoo extra (the README's test command installs it)")
     rw = ("dict(relative=True, law_baseline=True, relative_cap=100.0, tracking=1.0, torque=0.0, alive=0.0, "

@@ -135,6 +135,7 @@ def test_cutting_a_run_into_calls_changes_nothing(chunk):
     np.testing.assert_array_equal(whole.X, cut.X)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["paper-0.1hz", "paper-0.5hz"])
 def test_no_false_alarm_over_full_episodes_at_the_top_of_the_noise_range(name):
     # before, the proposed law was flagged diverged at 12-17 s for most noise seeds at 2e-4

@@ -48,6 +48,7 @@ def modules(tmp_path_factory):
         sys.path.remove(str(d))
 
 
+@pytest.mark.slow
 def test_the_controller_recipe_integrates_its_own_state(modules):
     my_pid, _ = modules
     sc = preset("paper-0.1hz", duration=2.0)
@@ -67,6 +68,7 @@ def test_the_controller_recipe_integrates_its_own_state(modules):
     assert np.all(np.abs(err) < 0.05) and np.any(err != 0.0)
 
 
+@pytest.mark.slow
 def test_the_observer_recipe_estimates_the_velocity_and_is_refused_where_it_cannot_serve(modules):
     my_pid, my_hgo = modules
     sc = preset("paper-0.1hz", duration=2.0)
@@ -137,6 +139,7 @@ print(json.dumps(out))
 """
 
 
+@pytest.mark.slow
 def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
     shutil.copytree(ROOT / "blf_gym", tmp_path / "blf_gym", ignore=shutil.ignore_patterns("__pycache__"))
     _apply(recipe("reward"), tmp_path / "blf_gym" / "reward.py")

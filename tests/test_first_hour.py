@@ -176,6 +176,7 @@ def test_metadata_is_written_while_training_not_only_at_the_end(tmp_path):
 
 # ---- 2. the compile notice, wherever numba caches ---------------------------------------------
 
+@pytest.mark.slow
 def test_the_compile_notice_names_numba_s_real_cache_and_is_printed_once(tmp_path):
     # NUMBA_CACHE_DIR stands in for a read-only install, where numba falls back to another folder.
     # Two processes start together on an empty cache, as pytest workers, sweep trials or subprocess

@@ -169,6 +169,7 @@ def _policy_bytes(run: Path) -> bytes:
         return z.read("policy.pth")
 
 
+@pytest.mark.slow
 def test_an_interrupted_smoke_sweep_resumes_ranks_its_trials_and_a_trial_is_a_direct_blf_train_run(tmp_path):
     """The shipped smoke sweep, stopped by Ctrl-C once its first trial finished (one trial at a
     time), then resumed by the same command with trials in parallel: the finished trial is kept,
@@ -255,6 +256,7 @@ def _smoke_variant(tmp_path: Path, name: str, num_samples: int, timesteps: int, 
     return sweep
 
 
+@pytest.mark.slow
 def test_asha_prunes_through_blf_train_and_tpe_proposes(tmp_path):
     """ASHA on the learning-curve points, Optuna's TPE proposing: pruned trials stop early and
     their blf-train ends on its SIGTERM path (a final checkpoint, status 'interrupted')."""
@@ -280,6 +282,7 @@ def test_asha_prunes_through_blf_train_and_tpe_proposes(tmp_path):
     assert len({json.dumps(t["params"], sort_keys=True) for t in res["trials"]}) == 4
 
 
+@pytest.mark.slow
 def test_a_wall_clock_budget_stops_the_sweep_and_a_resume_does_not_renew_it(tmp_path):
     """A budget shorter than the trials: Ray Tune stops them when it runs out, the sweep ends
     normally (exit 0, not an interrupt) with the stopped trials marked 'budget' and the rest
@@ -309,6 +312,7 @@ def test_a_wall_clock_budget_stops_the_sweep_and_a_resume_does_not_renew_it(tmp_
     assert json.loads((out / "budget.json").read_text())["used_s"] == used
 
 
+@pytest.mark.slow
 def test_blf_tune_is_a_grid_sweep_over_config_files(tmp_path):
     cands = []
     for name, scale in (("small", 0.5), ("large", 4.0)):
