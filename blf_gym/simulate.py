@@ -296,7 +296,7 @@ def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, 
     """The part of a stage evaluation that calls the maths library (cos, sin, acos, atan2, exp),
     for one lane: the reference and the bounds at ``ts``, the measurement y, the cos and sin of the
     plant's and the nominal model's link angles, and the friction torques. It runs in a loop of its
-    own, so that the rest of the stage, :func:`_stage_rest_template`, vectorises across lanes."""
+    own, so that the rest of the stage, in :func:`_lanes_template`, vectorises across lanes."""
     reference_into(ts, rp, arm, ref)
     bounds_into(ts, bp, bnd)
     same = True
@@ -313,81 +313,6 @@ def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, 
     for i in range(n):
         fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
     return same
-
-
-def _stage_rest_template(ts, x, y, res, plant, nom, lg, og, fg, ref, bnd, cout, fout, rr, u, hu, satf, dx, pw, Mp,
-                         Lp, wl, wo, fr, copy_model, plain):
-    """The rest of one evaluation of the closed-loop right-hand side at (ts, x) for one lane, into
-    ``dx``, after :func:`_stage_trig`. Branch-free where the lanes may differ, so that a loop over
-    the lanes vectorises.
-
-    The measurement is y = q(stage) + noise, the noise sample held over the step, so without noise
-    the law and the observer see the angles at every stage like Simulink's continuous blocks.
-    ``x`` = [q, qd, observer states, controller states]. ``_ctrl_output``, ``_obs_rhs`` and
-    ``_ctrl_update`` are the generated glue of :func:`blf_gym.blocks.connect`, bound with the sizes
-    ``_N``, ``_NO``, ``_NC`` by :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter``
-    turns the residual (with ``plain``, a runtime flag, the agent's torque minus u_law) into ``fout[:n]``.
-    The nominal model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when
-    the nominal arm is the plant's and y == q that gives the plant's own numbers, which a one-lane
-    kernel copies instead (``copy_model``; in a block the lanes would take different branches).
-    """
-    n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
-    nn = n * n
-    arm = plant[: 2 * n + 1]
-    o = 2 * n + 1
-    q = _fixed(x, 0, n)
-    qd = _fixed(x, n, n)
-    xo = _fixed(x, 2 * n, _NO)  # noqa: F821
-    xc = _fixed(x, 2 * n + _NO, _NC)  # noqa: F821
-    dxo = _fixed(dx, 2 * n, _NO)  # noqa: F821
-    dxc = _fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
-    trig = pw[4 * n : 6 * n]
-    c = pw[6 * n : 7 * n]
-    g = pw[7 * n : 8 * n]
-    jf = pw[8 * n : 9 * n]
-    rhs = pw[9 * n : 10 * n]
-    mass_matrix_into(trig, arm, Mp, pw)
-    gravity_into(trig, arm, g, pw)
-    ldl_factor_into(Mp, Lp)
-    if copy_model:
-        for i in range(nn):
-            nom[i] = Mp[i]
-            nom[nn + 3 * n + i] = Lp[i]
-        for i in range(n):
-            nom[nn + i] = g[i]
-    else:
-        nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
-    umax = plant[o + _UMAX]
-    _ctrl_output(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-    if _FILTER:  # noqa: F821 (compile-time constant)
-        for i in range(n):
-            rr[i] = res[i] - cout[i] if plain else res[i]
-        _res_filter(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-    for i in range(n):
-        ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
-        s = 0.0
-        if ui > umax:
-            ui = umax
-            s = 1.0
-        elif ui < -umax:
-            ui = -umax
-            s = 1.0
-        u[i] = ui
-        satf[i] = s
-        hu[i] = dead_zone(ui, plant[o + _HR], plant[o + _HL], plant[o + _TR], plant[o + _TL])
-    # plant: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
-    coriolis_times_into(trig, qd, qd, arm, c, pw)
-    wrench_torque_into(trig, arm, plant[o + _FX : o + _MZ + 1], jf)
-    on = force_active(ts, plant[o + _ONSET]) > 0.0
-    for i in range(n):
-        jf[i] = jf[i] if on else 0.0
-    for i in range(n):
-        rhs[i] = hu[i] - c[i] - g[i] - jf[i] - fr[i]
-        dx[i] = qd[i]
-    ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
-    _obs_rhs(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
-    _ctrl_update(ts, y, q, qd, xo, xc, ref, bnd, nom, og, lg, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _copy(src, dst):
@@ -427,13 +352,25 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
     :func:`lane_layout`, lanes innermost).
 
-    One step is: the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and ``_stage_rest``
-    in two loops over the lanes), the step's bookkeeping at its start (:func:`_step_bookkeeping`;
+    One step is: the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and the rest of the
+    right-hand side, in two loops over the lanes), the step's bookkeeping at its start (:func:`_step_bookkeeping`;
     at 1 ms samples also the reward's :func:`blf_gym.reward.accumulate_sample` and the record),
     the update (:func:`_ode3_update`) and the instability check (:func:`_error_ratio`,
     :func:`_instability`). Every lane computes every stage the block needs; a lane's own control
     flow (stopped, noisy, first-same-as-last, instability checks) only decides what it keeps, so
     each arm's numbers are those it would get alone.
+
+    The rest of a stage evaluation at (ts, x), for one lane, into ``dx``: branch-free where the lanes
+    may differ, so that its loop over the lanes vectorises. The measurement is y = q(stage) + noise,
+    the noise sample held over the step, so without noise the law and the observer see the angles at
+    every stage like Simulink's continuous blocks. ``x`` = [q, qd, observer states, controller
+    states]. ``_ctrl_output``, ``_obs_rhs`` and ``_ctrl_update`` are the generated glue of
+    :func:`blf_gym.blocks.connect`, bound with the sizes ``_N``, ``_NO``, ``_NC`` by
+    :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter`` turns the residual
+    (with ``plain``, a runtime flag, the agent's torque minus u_law) into ``fout[:n]``. The nominal
+    model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when the nominal
+    arm is the plant's and y == q that gives the plant's own numbers, which a one-lane kernel copies
+    instead (``copy_model``; in a block the lanes would take different branches).
 
     Instability check (docs/model.md section 9): a step's embedded Bogacki-Shampine error estimate
     needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement noise
@@ -561,19 +498,90 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                                     _lane(W, _L_fr, n, b), n, LN == 1)  # noqa: F821
                         _lane(W, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
                     for b in range(LN):
-                        ts = _lane(W, _L_ts, 1, b)  # noqa: F821
-                        kst = _lane(W, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
+                        # the rest of the evaluation at (tb, xs) into dx, written here rather than
+                        # inlined from a function of its own: numba copies an inlined function's
+                        # whole IR, and this part, with the plug-ins in it, is most of the kernel
+                        tb = _lane(W, _L_ts, 1, b)[0]  # noqa: F821
                         flb = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        _stage_rest(ts[0], _lane(W, _L_xs, nx, b), _lane(W, _L_y, n, b), _lane(W, _L_res, n, b),  # noqa: F821
-                                    _lane(W, _L_plant, _NPL, b), _lane(W, _L_nom, nominal_length(n), b),  # noqa: F821
-                                    _lane(W, _L_lg, _NLG, b), _lane(W, _L_og, _NOG, b), _lane(W, _L_fg, _NFG, b),  # noqa: F821
-                                    _lane(W, _L_ref, 3 * n, b), _lane(W, _L_bnd, BOUND_LEN, b),  # noqa: F821
-                                    _lane(W, _L_cout, _NOUT, b), _lane(W, _L_fout, _NFOUT, b), _lane(W, _L_rr, n, b),  # noqa: F821
-                                    _lane(W, _L_u, n, b), _lane(W, _L_hu, n, b), _lane(W, _L_satf, n, b), kst,  # noqa: F821
-                                    _lane(W, _L_pw, _NPW, b), _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b),  # noqa: F821
-                                    _lane(W, _L_wl, work_length(n), b), _lane(W, _L_wo, work_length(n), b),  # noqa: F821
-                                    _lane(W, _L_fr, n, b),  # noqa: F821
-                                    LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0, plain)
+                        copy_model = LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0
+                        x = _lane(W, _L_xs, nx, b)  # noqa: F821
+                        y = _lane(W, _L_y, n, b)  # noqa: F821
+                        res = _lane(W, _L_res, n, b)  # noqa: F821
+                        plant_b = _lane(W, _L_plant, _NPL, b)  # noqa: F821
+                        nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
+                        lgb = _lane(W, _L_lg, _NLG, b)  # noqa: F821
+                        ogb = _lane(W, _L_og, _NOG, b)  # noqa: F821
+                        fg = _lane(W, _L_fg, _NFG, b)  # noqa: F821
+                        ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
+                        bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
+                        cout = _lane(W, _L_cout, _NOUT, b)  # noqa: F821
+                        fout = _lane(W, _L_fout, _NFOUT, b)  # noqa: F821
+                        rr = _lane(W, _L_rr, n, b)  # noqa: F821
+                        u = _lane(W, _L_u, n, b)  # noqa: F821
+                        hu = _lane(W, _L_hu, n, b)  # noqa: F821
+                        satf = _lane(W, _L_satf, n, b)  # noqa: F821
+                        dx = _lane(W, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
+                        pw = _lane(W, _L_pw, _NPW, b)  # noqa: F821
+                        Mp = _lane(W, _L_Mp, n * n, b)  # noqa: F821
+                        Lp = _lane(W, _L_Lp, n * n, b)  # noqa: F821
+                        wl = _lane(W, _L_wl, work_length(n), b)  # noqa: F821
+                        wo = _lane(W, _L_wo, work_length(n), b)  # noqa: F821
+                        fr = _lane(W, _L_fr, n, b)  # noqa: F821
+                        nn = n * n
+                        arm = plant_b[: 2 * n + 1]
+                        o = 2 * n + 1
+                        q = _fixed(x, 0, n)
+                        qd = _fixed(x, n, n)
+                        xo = _fixed(x, 2 * n, _NO)  # noqa: F821
+                        xc = _fixed(x, 2 * n + _NO, _NC)  # noqa: F821
+                        dxo = _fixed(dx, 2 * n, _NO)  # noqa: F821
+                        dxc = _fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
+                        trig = pw[4 * n : 6 * n]
+                        c = pw[6 * n : 7 * n]
+                        g = pw[7 * n : 8 * n]
+                        jf = pw[8 * n : 9 * n]
+                        rhs = pw[9 * n : 10 * n]
+                        mass_matrix_into(trig, arm, Mp, pw)
+                        gravity_into(trig, arm, g, pw)
+                        ldl_factor_into(Mp, Lp)
+                        if copy_model:
+                            for i in range(nn):
+                                nom[i] = Mp[i]
+                                nom[nn + 3 * n + i] = Lp[i]
+                            for i in range(n):
+                                nom[nn + i] = g[i]
+                        else:
+                            nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
+                        umax = plant_b[o + _UMAX]
+                        _ctrl_output(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+                        if _FILTER:  # noqa: F821 (compile-time constant)
+                            for i in range(n):
+                                rr[i] = res[i] - cout[i] if plain else res[i]
+                            _res_filter(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
+                        for i in range(n):
+                            ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
+                            s = 0.0
+                            if ui > umax:
+                                ui = umax
+                                s = 1.0
+                            elif ui < -umax:
+                                ui = -umax
+                                s = 1.0
+                            u[i] = ui
+                            satf[i] = s
+                            hu[i] = dead_zone(ui, plant_b[o + _HR], plant_b[o + _HL], plant_b[o + _TR], plant_b[o + _TL])
+                        # plant_b: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
+                        coriolis_times_into(trig, qd, qd, arm, c, pw)
+                        wrench_torque_into(trig, arm, plant_b[o + _FX : o + _MZ + 1], jf)
+                        on = force_active(tb, plant_b[o + _ONSET]) > 0.0
+                        for i in range(n):
+                            jf[i] = jf[i] if on else 0.0
+                        for i in range(n):
+                            rhs[i] = hu[i] - c[i] - g[i] - jf[i] - fr[i]
+                            dx[i] = qd[i]
+                        ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
+                        _obs_rhs(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
+                        _ctrl_update(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
                     # into K0..K3: apart, since a view at an offset that depends on st would keep
                     # LLVM from proving the lanes of the loop above independent
                     for b in range(LN):
@@ -868,13 +876,11 @@ def _specialise(conn: Connection, lanes: int = LANES):
         sizes.update(_NPL=layout["plant"][1], _NRP=layout["rp"][1], _NBP=layout["bp"][1], _NLG=layout["lg"][1],
                      _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
                      _lane=_lane1 if lanes == 1 else _laneN)
-        rest = _clone(_stage_rest_template, f"stage__n{n}__{tag}",
-                      {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
-                       "_res_filter": conn.res_filter, **sizes}, inline="always")
-        kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}", {"_stage_rest": rest, **sizes}, nogil=True,
-                        _nrt=False)
+        kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}",
+                        {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
+                         "_res_filter": conn.res_filter, **sizes}, nogil=True, _nrt=False)
         cache = _cache_dir(kernel)
-        remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)
+        remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)  # the stage function of older versions
         remove_stale_cache(cache, f"advance{lanes}__n{n}__{pair}__", digest)
         _KERNELS[key] = kernel
     return _KERNELS[key]
