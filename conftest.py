@@ -73,10 +73,12 @@ def _own_law_cache(tmp_path_factory, monkeypatch):
 # one worker waited on the other's compile (the lock in blf_gym.simulate.ClosedLoop) instead of
 # building another. Names a run does not have (an example plug-in not installed) are skipped.
 _SUITE_KERNELS = [  # (controller, observer, residual filter, plain, lanes)
-    ("proposed", "leso", None, False, 1), ("none", "leso", None, False, 1), ("bc", "leso", None, False, 1),
-    ("lesobc", "leso", None, False, 1), ("proposed", "leso", "barrier", False, 1),
-    ("proposed_integral", "leso", None, False, 1),
-    ("proposed", "eso4", None, False, 1), ("proposed", "leso", None, False, 4),
+    # the batch build (4 lanes) of each, which batches of two arms or more use and single arms
+    # take when theirs is not compiled; the one-lane build of the single envs' laws
+    ("proposed", "leso", None, False, 4), ("none", "leso", None, False, 4), ("bc", "leso", None, False, 4),
+    ("lesobc", "leso", None, False, 4), ("proposed", "leso", "barrier", False, 4),
+    ("proposed_integral", "leso", None, False, 4), ("proposed", "eso4", None, False, 4),
+    ("proposed", "leso", None, False, 1), ("proposed", "leso", "barrier", False, 1), ("none", "leso", None, False, 1),
 ]
 
 

@@ -141,12 +141,13 @@ def controller_episodes(name: str, scenarios: Sequence[Scenario], threads: int |
     """A baseline controller's trajectories on the inner path, one per scenario, in order, computed
     ``batch`` episodes at a time (episode i has noise seed ``EVAL_SEED_OFFSET + i``), so a caller
     that reduces each one as it comes keeps at most a batch of 1 ms records in memory."""
-    from blf_gym.simulate import simulate_batch
+    from blf_gym.simulate import LANES, simulate_batch
 
     for lo in range(0, len(scenarios), batch):
         part = list(scenarios[lo : lo + batch])
+        # the batch build even for one episode (a preset, a plot's trace): one build per law
         trajs = simulate_batch(part, name, observer, noise_seeds=[EVAL_SEED_OFFSET + lo + i for i in range(len(part))],
-                               threads=threads)
+                               threads=threads, lanes=LANES)
         while trajs:
             yield trajs.pop(0)
 

@@ -191,16 +191,18 @@ def _statistics(stats: Path, model_path: Path, model: Any) -> Any:
 
 
 def _scoring_core(meta: dict[str, Any], meta_path: Path):
-    """The env blf-eval would score the agent in, with one arm; the env's own refusal, as one line
+    """The env blf-eval would score the agent in, with two arms; the env's own refusal, as one line
     naming the env_kwargs field. Building it loads (or, on a first run, compiles) the closed-loop
-    kernel of the agent's controller, observer and filter: the one blf-eval and load_pretrained
-    then step, kept in memory and in numba's disk cache, so no second compile follows. (Only an
-    agent run through another filter, blf-eval --residual-filter, needs a kernel besides this one.)"""
+    kernel of the agent's controller, observer and filter: the batch build (two arms or more step
+    in blocks of four, blf_gym.simulate.ClosedLoop), which blf-eval's batches then step and a
+    single arm takes when its own build is not compiled, kept in memory and in numba's disk cache,
+    so no second compile follows. (Only an agent run through another filter, blf-eval
+    --residual-filter, needs a kernel besides this one.)"""
     from blf_gym.core import EnvCore
 
     kw = scoring_env_kwargs(meta["env_kwargs"])
     try:
-        return EnvCore(1, record=True, threads=1, **kw)
+        return EnvCore(2, record=True, threads=1, **kw)
     except (ValueError, TypeError) as exc:
         msg = _one_line(exc)
         field = _field_in(msg, [k for k in meta["env_kwargs"] if k not in SCORING_REPLACES])

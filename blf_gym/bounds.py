@@ -10,9 +10,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import vmath
+
 from .params import BOUNDS_PACK, BoundParams
 
-__all__ = ["bounds_into", "error_bounds", "BOUND_SIGNALS", "BOUND_LEN"]
+__all__ = ["bounds_into", "bounds_exponent", "bounds_from", "error_bounds", "BOUND_SIGNALS", "BOUND_LEN"]
 
 BOUND_SIGNALS = ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot", "k_b_ddot")
 """The vector written by :func:`bounds_into`, declared once (these are also the plug-in signals'
@@ -30,8 +32,20 @@ def bounds_into(t, bp, out):
 
     ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.params.BOUNDS_PACK`.
     """
+    bounds_from(vmath.exp(bounds_exponent(t, bp)), bp, out)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def bounds_exponent(t, bp):
+    """-r t, the exponent of the bounds' decay at time ``t``."""
+    return -bp[_RATE] * t
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def bounds_from(decay, bp, out):
+    """:func:`bounds_into` given e^(-r t) (the closed loop's kernel evaluates it with the friction's
+    exponentials in one loop)."""
     r = bp[_RATE]
-    decay = np.exp(-r * t)
     a = bp[_AMP_A] * decay
     b = bp[_AMP_B] * decay
     out[KA] = a + bp[_FLOOR_A]

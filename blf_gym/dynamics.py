@@ -30,6 +30,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import vmath
+
 from .params import ArmParams
 
 __all__ = [
@@ -65,8 +67,9 @@ def abs_trig_into(q, trig):
     th = 0.0
     for j in range(n):
         th += q[j]
-        trig[j] = np.cos(th)
-        trig[n + j] = np.sin(th)
+        sn, cs = vmath.sincos(th)
+        trig[j] = cs
+        trig[n + j] = sn
 
 
 @njit(cache=True, error_model="numpy", inline="always")

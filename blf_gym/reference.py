@@ -19,9 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from . import vmath
+
 from .params import REFERENCE_PACK, Scenario
 
-__all__ = ["reference_into", "joint_reference", "REFERENCE_SIGNALS"]
+__all__ = ["reference_into", "reference_angle", "reference_from", "joint_reference", "REFERENCE_SIGNALS"]
 
 REFERENCE_SIGNALS = ("q_d", "qd_d", "qdd_d")
 """The vector written by :func:`reference_into`, n entries each, declared once (also the plug-in
@@ -30,12 +32,27 @@ _RP = {name: i for i, name in enumerate(REFERENCE_PACK)}
 _FREQ, _RADIUS, _ORIENT, _BRANCH = _RP["frequency"], _RP["radius"], _RP["orientation"], _RP["branch"]
 _WX, _WY, _K, _CB, _SB, _BETA = (_RP[k] for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
+def reference_angle(t, rp):
+    """theta(t) = (w t - angle(c_w)) / 2, the one angle whose cos and sin the reference needs."""
+    om = 2.0 * np.pi * rp[_FREQ]
+    return 0.5 * (om * t - rp[_BETA])
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def reference_into(t, rp, arm, out):
     """Write [q_d, qd_d, qdd_d] (9 entries) at time ``t`` into ``out``.
 
     ``rp`` is :meth:`Scenario.pack_reference`; ``arm`` the packed arm (lengths are read from it).
     """
+    st, ct = vmath.sincos(reference_angle(t, rp))
+    reference_from(st, ct, rp, arm, out)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def reference_from(st, ct, rp, arm, out):
+    """:func:`reference_into` given (sin, cos) of :func:`reference_angle` at t: the closed loop's
+    kernel evaluates those with the plant's and the measurement's link angles in one loop."""
     f = rp[_FREQ]
     rad = rp[_RADIUS]
     phi = rp[_ORIENT]
@@ -50,9 +67,6 @@ def reference_into(t, rp, arm, out):
     om = 2.0 * np.pi * f
     nu = 0.5 * om
     # theta = (om t - beta) / 2 with beta = angle(c_w); om t = 2 theta + beta
-    theta = 0.5 * (om * t - rp[_BETA])
-    ct = np.cos(theta)
-    st = np.sin(theta)
     c2t = ct * ct - st * st
     s2t = 2.0 * st * ct
     c = c2t * cb - s2t * sb  # cos(om t)
@@ -67,7 +81,7 @@ def reference_into(t, rp, arm, out):
     one_m = 1.0 - s * s
     den = np.sqrt(one_m)
     inv_den = 1.0 / den
-    q2 = 2.0 * np.arccos(s)
+    q2 = 2.0 * vmath.acos(s)
     q2d = -2.0 * sd * inv_den
     q2dd = -2.0 * (sdd * one_m + s * sd * sd) * (inv_den * inv_den * inv_den)
 
@@ -103,7 +117,7 @@ def reference_into(t, rp, arm, out):
     wry = wy * cb - wx * sb
     ex = l1 + l2 * c2
     ey = l2 * s2
-    q1 = rp[_BETA] + np.arctan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
+    q1 = rp[_BETA] + vmath.atan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
     q1d = ald - bed
     q1dd = aldd - bedd
     out[0] = q1

@@ -38,7 +38,8 @@ from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
-from .bounds import BOUND_LEN, KA, KB, bounds_into
+from . import vmath
+from .bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
 from .blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
                      nominal_terms_into, work_length)
 from .controller import make_controller, make_observer
@@ -56,8 +57,8 @@ from .dynamics import (
 from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, plant_length
 from .reward import SUM_COLUMNS, SUM_E2_JOINT, SUM_EN2, SUM_ERR_MAX, SUM_SAMPLES, SUM_UN2, accumulate_sample
 from .status import LAST_COLUMNS, N_STATUS, STATUS_COLUMNS
-from .reference import reference_into
-from .uncertainty import dead_zone, force_active, friction
+from .reference import reference_angle, reference_from, reference_into
+from .uncertainty import dead_zone, force_active, friction, friction_exponent, friction_from
 
 __all__ = [
     "CHANNELS",
@@ -292,33 +293,79 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, n, one_lane):
-    """The part of a stage evaluation that calls the maths library (cos, sin, acos, atan2, exp),
-    for one lane: the reference and the bounds at ``ts``, the measurement y, the cos and sin of the
-    plant's and the nominal model's link angles, and the friction torques. It runs in a loop of its
-    own, so that the rest of the stage, in :func:`_lanes_template`, vectorises across lanes."""
-    reference_into(ts, rp, arm, ref)
-    bounds_into(ts, bp, bnd)
+def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, ang, sn, cs, ex, ev, n,
+                one_lane):
+    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.vmath`:
+    sin and cos, acos, atan2, exp), for one lane: the reference and the bounds at ``ts``, the
+    measurement y, the cos and sin of the plant's and the nominal model's link angles, and the
+    friction torques. It runs in a loop of its own, so that the rest of the stage, in
+    :func:`_lanes_template`, vectorises across lanes.
+
+    Compiled for one lane, the 2n + 1 angles (the plant's links, the measured links, the
+    reference's) go through one loop of ``sincos`` and the n + 1 exponents (the friction's, the
+    bounds') through one loop of ``exp``, padded to whole vectors (``ang``/``sn``/``cs`` and
+    ``ex``/``ev``), so that the single arm's calls vectorise too. In a block the lanes vectorise
+    instead. Either way every number is the same function of the same argument, so a block's arms
+    and single arms agree bit for bit."""
     same = True
     for i in range(n):
         y[i] = q[i] + nz[i]
         if y[i] != q[i]:
             same = False
-    abs_trig_into(q, trig)
-    if one_lane and same:  # compiled for one lane only: a branch the lanes cannot take apart
-        for i in range(2 * n):
-            ntrig[i] = trig[i]
+    if one_lane:
+        th = 0.0
+        thy = 0.0
+        for j in range(n):
+            th += q[j]
+            thy += y[j]
+            ang[j] = th
+            ang[n + j] = thy
+        ang[2 * n] = reference_angle(ts, rp)
+        for i in range(2 * n + 1, ang.shape[0]):
+            ang[i] = 0.0
+        for i in range(ang.shape[0]):
+            sn[i], cs[i] = vmath.sincos(ang[i])
+        for j in range(n):
+            trig[j] = cs[j]
+            trig[n + j] = sn[j]
+            ntrig[j] = cs[n + j]
+            ntrig[n + j] = sn[n + j]
+        reference_from(sn[2 * n], cs[2 * n], rp, arm, ref)
+        for i in range(n):
+            ex[i] = friction_exponent(qd[i], tail[_PSI])
+        ex[n] = bounds_exponent(ts, bp)
+        for i in range(n + 1, ex.shape[0]):
+            ex[i] = 0.0
+        for i in range(ex.shape[0]):
+            ev[i] = vmath.exp(ex[i])
+        bounds_from(ev[n], bp, bnd)
+        for i in range(n):
+            fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[i])
     else:
+        reference_into(ts, rp, arm, ref)
+        bounds_into(ts, bp, bnd)
+        abs_trig_into(q, trig)
         abs_trig_into(y, ntrig)  # without noise y == q, and these are the same numbers
-    for i in range(n):
-        fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
+        for i in range(n):
+            fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
     return same
+
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _copy(src, dst):
     """dst[:] = src[:len(dst)] (the kernel allocates nothing, so no slice assignment)."""
     for i in range(dst.shape[0]):
         dst[i] = src[i]
+
+
+def _trig_slots(n: int) -> int:
+    """The one-lane kernel's sincos arguments per stage: 2n + 1, padded to whole vectors of 4."""
+    return -(-(2 * n + 1) // 4) * 4
+
+
+def _exp_slots(n: int) -> int:
+    """The one-lane kernel's exp arguments per stage: n + 1, padded to whole vectors of 4."""
+    return -(-(n + 1) // 4) * 4
 
 
 def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_gains: int, n_obs_gains: int,
@@ -332,7 +379,8 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
              ("nom", nominal_length(n)), ("pw", (10 + WORK_PER_LINK) * n + n * n), ("wl", work_length(n)),
              ("wo", work_length(n)), ("smp", 4 * n), ("fr", n), ("res", n), ("plant", plant_length(n)),
              ("rp", len(REFERENCE_PACK)), ("bp", len(BOUNDS_PACK)), ("lg", n_law_gains), ("og", n_obs_gains),
-             ("fg", n_filter_gains), ("ts", 1), ("flags", _N_FLAGS)]
+             ("fg", n_filter_gains), ("ts", 1), ("flags", _N_FLAGS), ("ang", _trig_slots(n)), ("sn", _trig_slots(n)),
+             ("cs", _trig_slots(n)), ("ex", _exp_slots(n)), ("ev", _exp_slots(n))]
     out, o = {}, 0
     for name, m in parts:
         out[name] = (o, m)
@@ -495,7 +543,9 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                                     _lane(W, _L_plant + 2 * n + 1, _NPL - 2 * n - 1, b), _lane(W, _L_bp, _NBP, b),  # noqa: F821
                                     _lane(W, _L_ref, 3 * n, b), _lane(W, _L_bnd, BOUND_LEN, b),  # noqa: F821
                                     _lane(W, _L_pw + 4 * n, 2 * n, b), _lane(W, _L_nom + n * n + n, 2 * n, b),  # noqa: F821
-                                    _lane(W, _L_fr, n, b), n, LN == 1)  # noqa: F821
+                                    _lane(W, _L_fr, n, b), _lane(W, _L_ang, _NANG, b), _lane(W, _L_sn, _NANG, b),  # noqa: F821
+                                    _lane(W, _L_cs, _NANG, b), _lane(W, _L_ex, _NEX, b), _lane(W, _L_ev, _NEX, b),  # noqa: F821
+                                    n, LN == 1)  # noqa: F821
                         _lane(W, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
                     for b in range(LN):
                         # the rest of the evaluation at (tb, xs) into dx, written here rather than
@@ -875,6 +925,7 @@ def _specialise(conn: Connection, lanes: int = LANES):
         sizes.update({f"_L_{k}": o for k, (o, _) in layout.items() if k != "_total"})
         sizes.update(_NPL=layout["plant"][1], _NRP=layout["rp"][1], _NBP=layout["bp"][1], _NLG=layout["lg"][1],
                      _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
+                     _NANG=layout["ang"][1], _NEX=layout["ex"][1],
                      _lane=_lane1 if lanes == 1 else _laneN)
         kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}",
                         {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
@@ -884,6 +935,18 @@ def _specialise(conn: Connection, lanes: int = LANES):
         remove_stale_cache(cache, f"advance{lanes}__n{n}__{pair}__", digest)
         _KERNELS[key] = kernel
     return _KERNELS[key]
+
+
+def _choose_lanes(conn: Connection, n_arms: int) -> int:
+    """The block width for ``n_arms`` arms when the caller leaves it open: :data:`LANES` for two
+    arms or more (two arms in a block of four cost what two single arms cost); for a single arm 1
+    (a block would charge it for four), unless only the batch build is compiled already, since
+    both give the same numbers and a build costs tens of seconds."""
+    if n_arms >= 2:
+        return LANES
+    if not _is_cached(_specialise(conn, 1)) and _is_cached(_specialise(conn, LANES)):
+        return LANES
+    return 1
 
 
 def _layout(conn: Connection) -> dict[str, tuple[int, int]]:
@@ -996,11 +1059,12 @@ class ClosedLoop:
     global step counter and the last applied torques live here; :meth:`advance` runs the kernel,
     splitting the arms over ``threads`` (default: one per CPU, at most one per arm).
 
-    ``lanes`` is the number of arms the kernel steps together in one block: 1 (the default) or
-    :data:`LANES`. Blocks of LANES arms run the per-arm arithmetic on vector registers, about 1.3
-    times faster per arm on a mixed batch of 64 (README, Speed), with the same numbers bit for
-    bit; they are a second build of the kernel, compiled on first use (about as long as the
-    first), which is why they are not yet the default.
+    ``lanes`` is the number of arms the kernel steps together in one block: 1 or :data:`LANES`.
+    Blocks of LANES arms run the per-arm arithmetic on vector registers, about 1.7 times faster
+    per arm on a mixed batch of 64 (README, Speed), with the same numbers bit for bit. The two are
+    separate builds of the kernel, each compiled on first use. The default, None, is
+    :func:`_choose_lanes`: blocks for two arms or more, one lane for a single arm unless only the
+    batch build is compiled already.
     """
 
     def __init__(
@@ -1011,12 +1075,13 @@ class ClosedLoop:
         threads: int | None = None,
         residual_filter: "str | ResidualFilter | None" = None,
         plain: bool = False,
-        lanes: int = 1,
+        lanes: int | None = None,
     ) -> None:
         if len(scenarios) == 0:
             raise ValueError("ClosedLoop needs at least one scenario")
-        if lanes not in (1, LANES):
-            raise ValueError(f"ClosedLoop.lanes must be 1 or {LANES}, got {lanes!r}")
+        if lanes is not None and lanes not in (1, LANES):
+            raise ValueError(f"ClosedLoop.lanes must be 1, {LANES} or None (chosen by the arms per thread), "
+                             f"got {lanes!r}")
         self.controller = make_controller(controller)
         self.observer = make_observer(observer)
         self.n = scenarios[0].arm.n_links
@@ -1045,6 +1110,8 @@ class ClosedLoop:
         """With a filter: the residual passed to advance() is the agent's whole torque, and the filter
         sees it minus the law's. A runtime flag: the residual and the plain mode share one build."""
         self.connection = connect(self.controller, self.observer, n, self.residual_filter)
+        if lanes is None:
+            lanes = _choose_lanes(self.connection, len(scenarios))
         self.lanes = int(lanes)
         """Arms per block of the kernel (1 or :data:`LANES`)."""
         self._kernel = _specialise(self.connection, self.lanes)
@@ -1281,15 +1348,17 @@ def simulate_batch(
     threads: int | None = None,
     residual: np.ndarray | None = None,
     residual_filter: "str | ResidualFilter | None" = None,
+    lanes: int | None = None,
 ) -> list[Trajectory]:
     """Run whole episodes (each scenario's ``sim.duration``) for N scenarios in one kernel call.
 
     The law is evaluated at every ODE3 stage; episodes are not terminated on violation (they are
     counted). A diverging arm stops early and its trajectory says so (``diverged``, ``message``).
     ``residual`` (N, n) N m, held over the whole episode, is added to the law's torque, through
-    ``residual_filter`` if given (one of the controller's filters).
+    ``residual_filter`` if given (one of the controller's filters). ``lanes`` is
+    :class:`ClosedLoop`'s (None: chosen by the number of arms).
     """
-    loop = ClosedLoop(scenarios, controller, observer, threads=threads, residual_filter=residual_filter)
+    loop = ClosedLoop(scenarios, controller, observer, threads=threads, residual_filter=residual_filter, lanes=lanes)
     steps = {s.sim.n_steps for s in scenarios}
     if len(steps) != 1:
         raise ValueError("simulate_batch needs scenarios of one duration")

@@ -9,14 +9,25 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["friction", "dead_zone", "force_active", "dead_zone_array"]
+from . import vmath
+
+__all__ = ["friction", "friction_exponent", "friction_from", "dead_zone", "force_active", "dead_zone_array"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _tanh(z):
     # tanh through one exp (libm's tanh goes through expm1 and costs about twice as much); the
     # absolute error is below 2e-16, which is what the friction term needs.
-    e = np.exp(-2.0 * abs(z))
+    return _tanh_from(z, vmath.exp(_tanh_exponent(z)))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tanh_exponent(z):
+    return -2.0 * abs(z)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _tanh_from(z, e):
     r = (1.0 - e) / (1.0 + e)
     return r if z >= 0.0 else -r
 
@@ -24,7 +35,21 @@ def _tanh(z):
 @njit(cache=True, error_model="numpy", inline="always")
 def friction(qd, viscous, coulomb, tanh_slope):
     """tau_fric = b qd + c tanh(psi qd) for one joint (paper eq. 2), N m."""
-    return viscous * qd + coulomb * _tanh(tanh_slope * qd)
+    z = tanh_slope * qd
+    return friction_from(qd, viscous, coulomb, z, vmath.exp(_tanh_exponent(z)))
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def friction_exponent(qd, tanh_slope):
+    """The exponent -2 |psi qd| whose exponential gives the friction's tanh."""
+    return _tanh_exponent(tanh_slope * qd)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def friction_from(qd, viscous, coulomb, z, e):
+    """:func:`friction` given z = psi qd and e = e^(-2 |z|) (the closed loop's kernel evaluates the
+    exponentials of every joint and of the bounds in one loop)."""
+    return viscous * qd + coulomb * _tanh_from(z, e)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -7,16 +7,15 @@ vector maths library here), and it would keep the plant's trigonometry, the refe
 scalar. These functions are written as straight-line arithmetic with selects instead of branches,
 which LLVM vectorises.
 
-**Not yet used by the kernel.** Wired in (a session's experiment, measured on mixed batches of 64
-arms), they made the plant's trigonometry, the reference and the bounds vectorise, but the batch
-was no faster (0.70-0.80 us per arm-step, against 0.74 with the C library; where the rest of the
-step's time goes is not located yet), and the one-lane
-kernel that steps a single arm got slower, because the branch-free ``acos`` and ``atan2`` evaluate
-every branch. They change last bits against the C library, so they go in only with the batched
-kernel's next step and with every path at once (single arm, batch, reproduction), so that all
-paths keep agreeing bit for bit. Against the C library the error is below 1 ulp for ``sincos``,
-``exp`` and ``acos`` and below 2 ulp for ``atan2`` (``tests/test_vmath.py`` checks them against
-NumPy).
+Every path of the closed loop uses them (the single env, the vector env, the reproduction, the
+evaluation), through the plant's link angles (:func:`blf_gym.dynamics.abs_trig_into`), the reference
+(:func:`blf_gym.reference.reference_into`), the bounds and the friction. A block of 4 arms
+evaluates them on vector registers, and one arm alone evaluates its 2n + 1 sines and cosines and
+its n + 1 exponentials of a stage in one vector loop each, so a batch and single arms compute the
+same function of the same argument and agree bit for bit. Against the C library they differ in
+last bits: below 1 ulp for ``sincos``, ``exp`` and ``acos`` and below 2 ulp for ``atan2``
+(``tests/test_vmath.py`` checks them against NumPy), so a run differs from one with the C
+library by round-off (docs/model.md gives the measured size).
 
 The polynomial and rational coefficients and the split constants of pi/2 and ln 2 are the published
 ones of Sun's fdlibm (``k_sin.c``, ``k_cos.c``, ``e_rem_pio2.c``, ``e_exp.c``, ``e_acos.c``,

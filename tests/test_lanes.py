@@ -20,6 +20,7 @@ import pytest
 
 from blf_gym.params import preset
 from blf_gym.scenarios import sample_suite
+from blf_gym import simulate
 from blf_gym.simulate import LANES, ClosedLoop
 
 N = 13
@@ -83,7 +84,7 @@ def test_each_arm_of_a_mixed_batch_equals_the_arm_alone():
     assert first[2, 1] == 1 and first[5, 1] == 2
     assert together[1]["status"][7, 2] > 0 and together[1]["status"][7, 0] < CALLS[1]
     for a in range(N):
-        single = ClosedLoop([scs[a]], "proposed", threads=1)
+        single = ClosedLoop([scs[a]], "proposed", threads=1, lanes=1)
         assert single.lanes == 1
         alone = _run(single, [a], inputs, resets)
         for c, (t, s) in enumerate(zip(together, alone)):
@@ -92,5 +93,28 @@ def test_each_arm_of_a_mixed_batch_equals_the_arm_alone():
 
 
 def test_lanes_is_checked():
-    with pytest.raises(ValueError, match="lanes must be 1 or"):
+    with pytest.raises(ValueError, match="lanes must be 1, 4 or None"):
         ClosedLoop([preset("paper-0.1hz")], "proposed", lanes=3)
+
+
+def test_blocks_for_two_arms_or_more_and_a_single_arm_takes_a_compiled_build():
+    sc = preset("paper-0.1hz")
+    # both builds of this kernel are compiled by the test above (same worker or the disk cache)
+    ClosedLoop([sc], "proposed", lanes=1)
+    ClosedLoop([sc] * 2, "proposed", lanes=LANES)
+    assert ClosedLoop([sc] * 2, "proposed", threads=2).lanes == LANES
+    assert ClosedLoop([sc] * 9, "proposed").lanes == LANES
+    assert ClosedLoop([sc], "proposed").lanes == 1
+    assert ClosedLoop([sc] * 9, "proposed", lanes=1).lanes == 1
+    # a single arm takes the batch build when only that one is compiled, rather than compiling
+    conn = ClosedLoop([sc], "proposed", lanes=1).connection
+    built = {1: True, LANES: True}
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(simulate, "_is_cached", lambda k: built[1 if k is simulate._specialise(conn, 1) else LANES])
+        assert simulate._choose_lanes(conn, 1) == 1 and simulate._choose_lanes(conn, 2) == LANES
+        built.update({1: False, LANES: True})
+        assert simulate._choose_lanes(conn, 1) == LANES
+        built.update({1: True, LANES: False})
+        assert simulate._choose_lanes(conn, 2) == LANES
+        built.update({1: False, LANES: False})
+        assert simulate._choose_lanes(conn, 1) == 1
