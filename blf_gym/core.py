@@ -391,6 +391,66 @@ class _LawRun:
         return h0, self.h, local + self._acc[:, None, :]
 
 
+class _Record:
+    """The 1 ms samples of N arms' current episodes, kept for :meth:`EnvCore.trajectory`.
+
+    Each agent step has a slab: the C-contiguous (N, m, channels, n) array that the kernel writes
+    the step's samples into, so recording copies nothing. Arm i's episode is the slabs from
+    ``start[i]`` on, with ``nrec[j, i]`` samples in slab j (all m until the arm stops). Slabs are
+    allocated for ``steps`` agent steps at a time; the system gives their pages only once they are
+    written. When they run out, the slabs that no episode reads any more are dropped, and the store
+    grows only if there are none."""
+
+    def __init__(self, N: int, m: int, n: int, steps: int) -> None:
+        self.shape = (N, m, len(CHANNELS), n)
+        self.steps = max(1, steps)
+        self._clear()
+
+    def _clear(self) -> None:
+        self.buf = np.empty((0, *self.shape))
+        self.nrec = np.zeros((0, self.shape[0]), dtype=np.int64)
+        self.pos = 0
+        self.start = np.zeros(self.shape[0], dtype=np.int64)
+
+    def slab(self) -> np.ndarray:
+        """The array the next step writes into."""
+        if self.pos == len(self.buf):
+            keep = int(self.start.min())
+            k = self.pos - keep
+            buf = np.empty((max(self.steps, 2 * k), *self.shape))
+            nrec = np.zeros((len(buf), self.shape[0]), dtype=np.int64)
+            buf[:k] = self.buf[keep:self.pos]
+            nrec[:k] = self.nrec[keep:self.pos]
+            self.buf, self.nrec, self.pos = buf, nrec, k
+            self.start -= keep
+        return self.buf[self.pos]
+
+    def commit(self, nrec: np.ndarray) -> None:
+        """The slab of :meth:`slab` holds ``nrec[i]`` samples of arm i."""
+        self.nrec[self.pos] = nrec
+        self.pos += 1
+
+    def restart(self, idx: Sequence[int]) -> None:
+        """Arms ``idx`` begin a new episode with the next step."""
+        self.start[list(idx)] = self.pos
+
+    def samples(self, i: int, release: bool = False) -> np.ndarray:
+        """Arm i's samples so far, as a new (samples, channels, n) array. ``release`` forgets them
+        (the arm's later steps are kept); the memory goes once no arm's episode reads those slabs."""
+        s = int(self.start[i])
+        rows, k = self.buf[s:self.pos, i], self.nrec[s:self.pos, i]
+        m = self.shape[1]
+        if bool((k == m).all()):
+            out = rows.reshape(-1, *self.shape[2:])  # a copy when N > 1 (the slabs interleave the arms)
+        else:
+            out = rows[np.arange(m)[None, :] < k[:, None]]
+        if release:
+            self.start[i] = self.pos
+            if bool((self.start == self.pos).all()):
+                self._clear()
+        return out
+
+
 class EnvCore:
     """N arms of the PlanarBLF task stepped together by one compiled kernel call.
 
@@ -569,7 +629,7 @@ class EnvCore:
         self._ref = np.zeros((N, 3 * n))
         self._bnd = np.zeros((N, BOUND_LEN))
         self._obs_noise = np.zeros((N, n))
-        self._chunks: list[list[np.ndarray]] = [[] for _ in range(N)]
+        self._record = _Record(N, self.samples_per_period, n, self.max_episode_steps) if self.record else None
         self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
         self._ep_int[:, EP_FIRST_VIOL] = -1
         self._ep_f = np.zeros((N, EP_E2_JOINT + n))
@@ -684,12 +744,13 @@ class EnvCore:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
         if self._score_w > 0:
             self._start_law(idx, scs)
+        if self._record is not None:
+            self._record.restart(idx)
         for i in idx:
             self._phi[i] = 0.0
             self.steps[i] = 0
             self.last_x3[i] = 0.0
             self.done[i] = False
-            self._chunks[i] = []
             self._ep_int[i] = 0
             self._ep_int[i, EP_FIRST_VIOL] = -1
             self._ep_f[i] = 0.0
@@ -869,22 +930,27 @@ class EnvCore:
         N, n = self.num_envs, self.n
         scale = self.residual_scale if self.residual else self._umax[:, None]
         residual = a * scale
-        noise = None
+        noise = obs_noise = None
         if self._noisy:
             # each arm draws from its own generator, and only if it is noisy, so an arm's stream
-            # does not depend on its neighbours (vector env == single envs)
-            noise = np.zeros((N, self.steps_per_period, n))
+            # does not depend on its neighbours (vector env == single envs): the step's angle noise,
+            # then the next observation's, in one call (the same numbers as two calls in turn)
+            k = self.steps_per_period * n
+            z = np.zeros((N, k + n))
             for i in self._noisy:
                 if skip is None or not skip[i]:
-                    noise[i] = self.rngs[i].standard_normal((self.steps_per_period, n)) * self._stds[i]
-        rec, nrec, status = self.loop.advance(
+                    self.rngs[i].standard_normal(out=z[i])
+            z *= self._stds[:, None]
+            noise = z[:, :k].reshape(N, self.steps_per_period, n)
+            obs_noise = z[:, k:]
+        rec = self._record
+        _, nrec, status = self.loop.advance(
             self.steps_per_period, residual=residual, noise=noise,
             terminate=self.terminate_on_violation,
-            record_samples=self.samples_per_period if self.record else 0)
-        if self.record:
-            for i in range(N):
-                if nrec[i]:
-                    self._chunks[i].append(rec[i, : nrec[i]].copy())
+            record_samples=self.samples_per_period if rec is not None else 0,
+            out=None if rec is None else rec.slab())
+        if rec is not None:
+            rec.commit(nrec)
         self.steps += 1
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
         res = np.empty((8, N))
@@ -952,7 +1018,7 @@ class EnvCore:
         else:
             self.done[:] = False
         which = None if skip is None or not skip.any() else [int(i) for i in np.flatnonzero(~skip)]
-        obs = self.observe(info, which=which, t=t_end)
+        obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
         return obs, rewards, terminated, truncated, info
 
     def episode_metrics(self, i: int, termination_reason: str | None = None,
@@ -989,10 +1055,7 @@ class EnvCore:
 
         if not self.record:
             raise ValueError("trajectories are kept only with record=True")
-        chunks = self._chunks[i]
-        r = np.concatenate(chunks) if chunks else np.zeros((0, len(CHANNELS), self.n))
-        if release:
-            self._chunks[i] = []
+        r = self._record.samples(i, release)
         signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
                    for k, name in enumerate(CHANNELS)}
         ei = self._ep_int[i]
@@ -1024,18 +1087,20 @@ class EnvCore:
 
     # ------------------------------------------------------------------ observation
     def observe(self, info: dict[str, Any] | None = None,
-                which: Sequence[int] | None = None, t: np.ndarray | None = None) -> np.ndarray:
+                which: Sequence[int] | None = None, t: np.ndarray | None = None,
+                noise: np.ndarray | None = None) -> np.ndarray:
         """Observations (N, obs_dim) float32 at the arms' current time; adds the state part of
         ``info`` (time, error, bounds, margins, as per-arm arrays) when given. Measurement noise is
         drawn only for the arms in ``which`` (default all); the other rows are for discarding. ``t``
-        is the arms' current time when the caller already has it."""
+        is the arms' current time when the caller already has it; ``noise`` (N, n) rad is the
+        measurement noise when the caller drew it (then nothing is drawn here)."""
         N, n = self.num_envs, self.n
         X = self.loop.X
         if t is None:
             t = self.loop.time
         b = self.loop._batch
-        noise = self._obs_noise
-        if self._noisy:
+        if noise is None:
+            noise = self._obs_noise
             noise[:] = 0.0
             for i in self._noisy:
                 if which is None or i in which:

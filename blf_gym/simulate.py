@@ -1099,6 +1099,7 @@ class ClosedLoop:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.threads = int(threads)
         self._pool = None
+        self._shares: list[tuple[int, int]] = []  # the arms each thread steps (the first: the caller's)
         n = self.n
         if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
             raise ValueError("controller/observer nominal model must have as many links as the plant")
@@ -1218,6 +1219,7 @@ class ClosedLoop:
         noise: np.ndarray | None = None,
         terminate: bool = False,
         record_samples: int | None = None,
+        out: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Run ``n_steps`` ODE3 steps on every arm.
 
@@ -1230,6 +1232,9 @@ class ClosedLoop:
         then the sum of e1^2 (rad^2) of each joint] over the call's 1 ms samples, and
         ``self.last`` [u, u_law, saturated] at the start of the
         last integration step and [x3, x3_hat] at the last 1 ms sample.
+
+        ``out``, a C-contiguous float64 array of shape (N, record_samples, channels, n), receives the
+        samples instead of a new array (of arm i, only the first ``nrec[i]`` are written).
         """
         N, n = self.N, self.n
         if residual is None:
@@ -1247,7 +1252,14 @@ class ClosedLoop:
                 raise ValueError(f"noise must have shape {(N, n_steps, n)}, got {nz.shape}")
         if record_samples is None:
             record_samples = n_steps // self.steps_per_sample + 1
-        rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
+        if out is not None:
+            if (type(out) is not np.ndarray or out.dtype != np.float64 or not out.flags.c_contiguous
+                    or out.shape != (N, record_samples, N_CHANNELS, n)):
+                raise ValueError(f"out must be a C-contiguous float64 array of shape "
+                                 f"{(N, record_samples, N_CHANNELS, n)}")
+            rec = out
+        else:
+            rec = np.zeros((N, record_samples, N_CHANNELS, n)) if record_samples else self._no_record
         nrec = np.zeros(N, dtype=np.int64)
         status = np.empty((N, N_STATUS), dtype=np.int64)  # every column is set by the kernel
         sums = np.empty((N, SUM_E2_JOINT + n))
@@ -1270,14 +1282,16 @@ class ClosedLoop:
 
         # The kernel releases the GIL: whole blocks of arms run on parallel threads and write into
         # views of the shared arrays. Each arm's arithmetic is the same as alone.
-        blocks = self._scratch.shape[0]
-        threads = min(self.threads, blocks)
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
-            self._pool = ThreadPoolExecutor(max_workers=self.threads, thread_name_prefix="blf")
-        edges = np.minimum(np.linspace(0, blocks, threads + 1).round().astype(int) * L, N)
-        futures = [self._pool.submit(run, int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+            blocks = self._scratch.shape[0]
+            threads = min(self.threads, blocks)
+            self._pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="blf")
+            edges = np.minimum(np.linspace(0, blocks, threads + 1).round().astype(int) * L, N)
+            self._shares = [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
+        futures = [self._pool.submit(run, lo, hi) for lo, hi in self._shares[1:]]
+        run(*self._shares[0])  # the first share on this thread: one hand-over fewer
         for f in futures:
             f.result()
         self.sums = sums
