@@ -435,13 +435,14 @@ class _Record:
         self.start[list(idx)] = self.pos
 
     def samples(self, i: int, release: bool = False) -> np.ndarray:
-        """Arm i's samples so far, as a new (samples, channels, n) array. ``release`` forgets them
-        (the arm's later steps are kept); the memory goes once no arm's episode reads those slabs."""
+        """Arm i's samples so far, (samples, channels, n): a copy, except with one arm and no partial
+        step, where it is a view of the store (copy out what is kept). ``release`` forgets them (the
+        arm's later steps are kept); the memory goes once no arm's episode reads those slabs."""
         s = int(self.start[i])
         rows, k = self.buf[s:self.pos, i], self.nrec[s:self.pos, i]
         m = self.shape[1]
         if bool((k == m).all()):
-            out = rows.reshape(-1, *self.shape[2:])  # a copy when N > 1 (the slabs interleave the arms)
+            out = rows.reshape(-1, *self.shape[2:])  # a copy when N > 1: the slabs interleave the arms
         else:
             out = rows[np.arange(m)[None, :] < k[:, None]]
         if release:
