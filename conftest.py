@@ -64,7 +64,7 @@ def _own_law_cache(tmp_path_factory, monkeypatch):
     except ImportError:  # the agents' dependencies are not installed
         return
     folder = tmp_path_factory.mktemp("law")
-    monkeypatch.setattr(lawcache, "_folder", lambda: folder)
+    monkeypatch.setattr(lawcache, "_FOLDER", folder)  # blf-eval's worker processes take it too
 
 
 # The closed-loop kernels most of the suite uses, compiled once at the start of a parallel run,

@@ -6,6 +6,11 @@ a metadata JSON beside them (written by ``blf-train``: algorithm, env arguments,
 residual); all their episodes step together in one batched env. Episodes always run their full
 duration with termination off, and violations are counted.
 
+The run is cut into independent pieces (a baseline on one scenario group, an agent on all groups,
+the law's reference for an agent's env set-up) that ``--jobs`` worker processes score at once,
+the costliest first (default: one per CPU, at most :data:`MAX_DEFAULT_JOBS`). Every piece draws
+from its own seeds, so the records are the same, to the bit, for any number of workers.
+
 Examples::
 
     blf-eval                                  # the whole protocol: every baseline + the shipped agents
@@ -34,19 +39,21 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
-from dataclasses import replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
 import numpy as np
 
 from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, os_error_message
-from blf_gym.metrics import EpisodeStats, episode_stats, summarize, write_results
+from blf_gym.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
+from . import lawcache
 from .lawcache import law_key, load_law, store_law
 from .loading import load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
 
@@ -125,9 +132,10 @@ def build_scenarios(
     return groups
 
 
-CONTROLLER_BATCH = 16
+CONTROLLER_BATCH = 8
 """Episodes a baseline controller runs at once on the inner path (its arms are independent, so the
-results do not depend on it; it bounds the memory of their 1 ms records)."""
+results do not depend on it; it bounds the memory of their 1 ms records: 8 episodes of 30 s keep
+about 100 MB, twice that while each is copied out; two blocks of lanes, as fast per arm as more)."""
 AGENT_BATCH = 50
 """Most episodes an agent steps at once, in one batched env: the protocol's largest group (50 stress
 episodes), so each of the protocol's groups is one batch, as it always was. Longer lists are split
@@ -278,7 +286,7 @@ def _batch_plan(groups: Sequence[Sequence[Scenario]], batch: int) -> list[list[t
 
 def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Sequence[Sequence[Scenario]],
                          threads: int | None = None, batch: int = AGENT_BATCH,
-                         on_batch: Any = None) -> Iterator[tuple[int, Any]]:
+                         on_batch: Any = None, channels: Sequence[str] | None = None) -> Iterator[tuple[int, Any]]:
     """A trained agent's trajectories on several groups of scenarios: ``(group index, trajectory)``,
     each group's episodes in order, the groups in order.
 
@@ -289,7 +297,9 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     alone, so every action is what it was when each group was stepped in a batch of its own (torch's
     last bits depend on the rows of a call: one row differs from several). Each record is released as
     its trajectory is handed over, so a caller that reduces them keeps at most one batch of records.
-    ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time."""
+    ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time.
+    ``channels`` are the signals each trajectory keeps (``EnvCore``'s ``record_channels``; default
+    all): :data:`blf_gym.metrics.METRIC_CHANNELS` is what the records read, a third of the memory."""
     from blf_gym.core import EnvCore
 
     # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
@@ -299,7 +309,7 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     for parts in _batch_plan(groups, batch):
         t0 = time.perf_counter()
         scs = [sc for g, lo, hi in parts for sc in groups[g][lo:hi]]
-        core = EnvCore(len(scs), record=True, threads=threads, **kw)
+        core = EnvCore(len(scs), record=True, record_channels=channels, threads=threads, **kw)
         rows, r = [], 0
         for g, lo, hi in parts:
             rows.append(slice(r, r + hi - lo))
@@ -391,7 +401,7 @@ def law_reference_groups(groups: Sequence[Sequence[Scenario]], meta: dict[str, A
         return [law_reference(scs, None, threads) for scs in groups]
     out: list[list[EpisodeStats]] = [[] for _ in groups]
     law = {"mode": "residual", "env_kwargs": law_env_kwargs(meta)}
-    for g, tr in agent_group_episodes(_ZeroResidual(), law, None, groups, threads):
+    for g, tr in agent_group_episodes(_ZeroResidual(), law, None, groups, threads, channels=METRIC_CHANNELS):
         out[g].append(episode_stats(tr))
     return out
 
@@ -454,7 +464,14 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: none)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="episode length in s (default 30)")
     p.add_argument("--threads", type=int, default=None, metavar="T",
-                   help="threads for the batched simulations (default: one per CPU)")
+                   help="threads for each batched simulation (default: one per CPU with --jobs 1, else one, "
+                        "as the workers share the CPUs)")
+    p.add_argument("--jobs", type=int, default=None, metavar="J",
+                   help=f"worker processes scoring pieces of the run at once, the costliest first: a policy's "
+                        f"episodes, a baseline's group, the law's reference (default: one per CPU, at most "
+                        f"{MAX_DEFAULT_JOBS}, here {default_jobs()}; 1 runs everything in this process). The "
+                        "records are the same for any J; each worker runs its kernels on one thread unless "
+                        "--threads says otherwise")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="folder for results.json, results.csv, plots and, written last, manifest.json, which "
                         "says complete: true only once every file is written (default: none, the table only)")
@@ -591,6 +608,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                              '\'{"payload": 0.15}\'') from exc
         if not isinstance(kwargs, dict):
             raise ValueError("--scenario-kwargs must be a JSON object")
+        if args.jobs is None:
+            args.jobs = default_jobs()
+        elif args.jobs < 1:
+            raise ValueError(f"--jobs must be an integer >= 1, got {args.jobs}")
         if args.controllers is None:
             # scoring one's own agent costs that agent and the law, not every baseline's rows
             args.controllers = ["proposed"] if args.agents else registered_controllers()
@@ -635,6 +656,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:  # e.g. a --duration that is no whole number of an agent's control periods
         print(f"blf-eval: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
+    except _WorkerLost as exc:
+        print(f"blf-eval: error: {exc}", file=sys.stderr)
+        return 1
     except OSError as exc:
         # the failing file is named (blf_gym.io.atomic_path sees to it); the set stays marked incomplete
         tail = "" if args.out is None else f"; the set in {args.out} is incomplete (no complete manifest.json)"
@@ -654,6 +678,225 @@ def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[st
     return prov
 
 
+@dataclass(frozen=True)
+class _Context:
+    """What every piece of a blf-eval run needs to know (sent once to each worker process)."""
+
+    groups: list[tuple[str, list[Scenario]]]
+    observer: str
+    threads: int | None
+    fresh: bool
+    save_traj: bool
+    out: Path | None
+    want_first: bool
+    residual_filter: str | None
+    law_folder: Path
+
+    def inner_key(self, g: int) -> str:
+        """The law cache's key of the proposed law with the LESO on the inner path, on group ``g``."""
+        label, scs = self.groups[g]
+        return law_key("inner", "leso", scs, _noise_seeds(scs))
+
+
+def _noise_seeds(scs: Sequence[Scenario]) -> list[int]:
+    return [EVAL_SEED_OFFSET + i for i in range(len(scs))]
+
+
+@dataclass(frozen=True)
+class _Piece:
+    """One independent piece of a blf-eval run: ``kind`` names its function in :data:`_PIECES`,
+    ``args`` its arguments after the context; ``cost`` orders the pieces, longest first, when they
+    run in parallel (a rough estimate in seconds of one core, from measured rates)."""
+
+    kind: str
+    args: tuple
+    cost: float
+    label: str
+    job: int = -1
+    """The job (policy) whose records it gives, -1 for a law reference."""
+
+
+def _reduce(ctx: _Context, name: str, g: int, k: int, tr: Any, stats: list[Any], first: list[Any],
+            files: list[Path]) -> None:
+    """Reduce one episode as it comes: only the group's first is kept (for the plots), and with
+    --save-traj each is written as it finishes, so memory does not grow with the number of episodes."""
+    if k == 0 and ctx.want_first:
+        first.append(_PlotTrace(tr))
+    if ctx.save_traj:
+        path = ctx.out / "traj" / f"{ctx.groups[g][0]}__{name}__{k}.npz"
+        tr.save_npz(path)
+        files.append(path)
+    stats.append(episode_stats(tr))
+
+
+def _baseline_piece(ctx: _Context, name: str, g: int) -> dict[str, Any]:
+    """A baseline controller's episodes on group ``g`` (the law's own row from the law cache when
+    it is kept there)."""
+    label, scs = ctx.groups[g]
+    stats: list[Any] = []
+    first: list[Any] = []
+    files: list[Path] = []
+    # the law's own row is every other row's reference: kept between runs
+    own_law = name == "proposed" and ctx.observer == "leso"
+    hit = load_law(ctx.inner_key(g), len(scs)) if own_law and not ctx.fresh and not ctx.save_traj else None
+    if hit is not None:
+        stats, wall = hit
+        if ctx.want_first:  # the plots' trace: the group's first episode alone
+            first.append(_PlotTrace(next(controller_episodes(name, scs[:1], ctx.threads))))
+    else:
+        t0 = time.perf_counter()
+        for k, tr in enumerate(controller_episodes(name, scs, ctx.threads, ctx.observer)):
+            _reduce(ctx, name, g, k, tr, stats, first, files)
+            del tr
+        wall = time.perf_counter() - t0
+        if own_law:
+            store_law(ctx.inner_key(g), stats, wall)
+    return {"stats": stats, "first": first, "wall": wall, "reused": hit is not None, "files": files}
+
+
+def _inner_law_piece(ctx: _Context, g: int) -> list[Any]:
+    """The proposed law with the LESO on the inner path on group ``g``: the baselines' reference
+    when the law's own row is not scored (or scored with another observer)."""
+    key = ctx.inner_key(g)
+    hit = None if ctx.fresh else load_law(key, len(ctx.groups[g][1]))
+    if hit is not None:
+        return hit[0]
+    t0 = time.perf_counter()
+    stats = law_reference(ctx.groups[g][1], None, ctx.threads)
+    store_law(key, stats, time.perf_counter() - t0)
+    return stats
+
+
+def _law_env_piece(ctx: _Context, meta: dict[str, Any], gs: list[int], keys: list[str]) -> list[list[Any]]:
+    """The law on the same episodes and noise as an agent's (its env set-up: control period, noise
+    draws) on groups ``gs``, all in one go, each group kept in the law cache under its key."""
+    t0 = time.perf_counter()
+    computed = law_reference_groups([ctx.groups[g][1] for g in gs], meta, ctx.threads)
+    wall = time.perf_counter() - t0
+    total = sum(len(ctx.groups[g][1]) for g in gs)
+    for g, key, stats in zip(gs, keys, computed):
+        store_law(key, stats, wall * len(ctx.groups[g][1]) / total)
+    return computed
+
+
+def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
+    """An agent's episodes on every group; ``agent`` is its (model, metadata, statistics) or, in a
+    worker process, the path it is loaded from (with the run's --residual-filter)."""
+    if isinstance(agent, Path):
+        import torch
+
+        torch.set_num_threads(1)  # as in the main process (see main)
+        model, meta, norm = load_agent(agent)
+        if ctx.residual_filter is not None:
+            meta = with_filter(meta, ctx.residual_filter)
+    else:
+        model, meta, norm = agent
+    # the groups' episodes share batched envs: a group's wall time is its share (by episodes) of the
+    # batches that stepped it
+    walls = [0.0] * len(ctx.groups)
+
+    def on_batch(parts: list[tuple[int, int, int]], wall_s: float) -> None:
+        total = sum(hi - lo for _, lo, hi in parts)
+        for g, lo, hi in parts:
+            walls[g] += wall_s * (hi - lo) / total
+    per: list[tuple[list[Any], list[Any]]] = [([], []) for _ in ctx.groups]
+    files: list[Path] = []
+    # the signals the records and plots read, unless every signal is saved
+    channels = None if ctx.save_traj else METRIC_CHANNELS
+    for g, tr in agent_group_episodes(model, meta, norm, [scs for _, scs in ctx.groups], ctx.threads,
+                                      on_batch=on_batch, channels=channels):
+        stats, first = per[g]
+        _reduce(ctx, name, g, len(stats), tr, stats, first, files)
+        del tr
+    return {"per": per, "walls": walls, "files": files}
+
+
+_PIECES = {"baseline": _baseline_piece, "inner_law": _inner_law_piece, "law_env": _law_env_piece,
+           "agent": _agent_piece}
+_WORKER_CONTEXT: _Context | None = None
+
+
+def _worker_start(ctx: _Context) -> None:
+    """A worker process's set-up: the run's context; Ctrl-C is the main process's to handle (it ends
+    the workers)."""
+    import signal
+
+    global _WORKER_CONTEXT
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _WORKER_CONTEXT = ctx
+    lawcache.use_folder(ctx.law_folder)
+
+
+def _worker_piece(piece: _Piece) -> Any:
+    return _PIECES[piece.kind](_WORKER_CONTEXT, *piece.args)
+
+
+def default_jobs() -> int:
+    """blf-eval's default number of worker processes: one per CPU this process may run on, at most
+    :data:`MAX_DEFAULT_JOBS`."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_DEFAULT_JOBS))
+
+
+MAX_DEFAULT_JOBS = 4
+"""The most worker processes blf-eval starts unless told (``--jobs``): each holds its own compiled
+kernels, torch and a batch of episodes, so memory grows with them."""
+
+
+class _WorkerLost(RuntimeError):
+    """A worker process ended without its result (killed, out of memory, or never started)."""
+
+
+def _execute(ctx: _Context, pieces: list[_Piece], jobs: int, done: Any, started: Any) -> None:
+    """Run ``pieces``: in this process, in order, with ``jobs`` 1; else in ``jobs`` worker processes,
+    the costliest first (each worker takes the next piece when it is free). ``started(piece)`` and
+    ``done(piece, result)`` are called in this process, ``done`` as each piece finishes. The results
+    do not depend on ``jobs``: every piece is computed from its own seeds, whatever runs beside it."""
+    if jobs <= 1 or len(pieces) <= 1:
+        for piece in pieces:
+            started(piece)
+            done(piece, _PIECES[piece.kind](ctx, *piece.args))
+        return
+    import concurrent.futures as cf
+    import multiprocessing as mp
+
+    # spawn, not fork: this process has threads (the progress bar's, torch's) that a fork would copy
+    # in whatever state they were in
+    pool = cf.ProcessPoolExecutor(max_workers=min(jobs, len(pieces)), mp_context=mp.get_context("spawn"),
+                                  initializer=_worker_start, initargs=(ctx,))
+    try:
+        futures = {}
+        for piece in sorted(pieces, key=lambda p: -p.cost):
+            futures[pool.submit(_worker_piece, piece)] = piece
+            started(piece)
+        for fut in cf.as_completed(futures):
+            try:
+                result = fut.result()
+            except cf.process.BrokenProcessPool:
+                raise _WorkerLost(
+                    f"a worker process ended abruptly while scoring {futures[fut].label} (killed, out of memory, or "
+                    "it could not start: a script that calls agents.evaluate.main needs an "
+                    "'if __name__ == \"__main__\":' guard); --jobs 1 runs everything in this process") from None
+            done(futures[fut], result)
+    except BaseException:
+        # Ctrl-C or a failed piece: the workers are ended now, not after their current piece
+        pool.shutdown(wait=False, cancel_futures=True)
+        for proc in mp.active_children():
+            proc.terminate()
+        raise
+    pool.shutdown()
+
+
+def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None) -> float:
+    """A piece's rough cost in seconds of one core: measured here, the inner path costs about 5 ms
+    per simulated second of an episode, and an env path about 4 ms plus ``per_step`` per agent step."""
+    sim_s = sum(sc.sim.duration for sc in scs)
+    return sim_s * (5e-3 if period is None else 4e-3 + per_step / period)
+
+
 def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list,
          kwargs: dict[str, Any] | None = None) -> int:
     from blf_gym.metrics import provenance
@@ -661,51 +904,57 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     kwargs = kwargs or {}
     meta_out = provenance(command=getattr(args, "command", None))
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
-    jobs += [(meta.get("name", p.parent.name), meta["mode"], (model, meta, norm)) for p, model, meta, norm in agents]
-    law_cache: dict[tuple[str, str], list[Any]] = {}
-    fresh = bool(getattr(args, "fresh_law", False))
-    seeds = {label: [EVAL_SEED_OFFSET + i for i in range(len(scs))] for label, scs in groups}
+    jobs += [(meta.get("name", p.parent.name), meta["mode"], (p, model, meta, norm)) for p, model, meta, norm in agents]
+    n_jobs = getattr(args, "jobs", None) or 1
+    ctx = _Context(groups=groups, observer=args.observer,
+                   # the workers share the cores: one thread each unless told
+                   threads=args.threads if args.threads is not None or n_jobs <= 1 else 1,
+                   fresh=bool(getattr(args, "fresh_law", False)), save_traj=bool(args.save_traj), out=args.out,
+                   want_first=args.out is not None and not args.no_plots,
+                   residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder())
+    whole = [sc for _, scs in groups for sc in scs]
 
-    def inner_key(label: str, scs: list[Scenario]) -> str:
-        # the cache key of the proposed law with the LESO on the inner path, on one group
-        return law_key("inner", "leso", scs, seeds[label])
-
-    def inner_law(label: str, scs: list[Scenario]) -> list[Any]:
-        # the proposed law with the LESO on the inner path, the baselines' reference when the law's
-        # own row is not scored (or scored with another observer)
-        key = inner_key(label, scs)
-        hit = None if fresh else load_law(key, len(scs))
-        if hit is not None:
-            return hit[0]
-        t0 = time.perf_counter()
-        stats = law_reference(scs, None, args.threads)
-        store_law(key, stats, time.perf_counter() - t0)
-        return stats
-
-    def laws_for(meta: dict[str, Any]) -> list[list[Any]]:
-        # the law on the same episodes and noise as an agent's: its env set-up (control period, noise
-        # draws), computed once for every agent that shares it, all missing groups in one go
+    # the pieces, and which law each record is scored against: ("inner", g) for a baseline, (tag, g)
+    # for an agent, tag naming the agent's env set-up; laws[...] fills as pieces finish
+    pieces: list[_Piece] = []
+    laws: dict[tuple[str, int], list[Any]] = {}
+    own_law = "proposed" in args.controllers and args.observer == "leso"
+    # the proposed law's own row runs first: it is every other baseline's reference too
+    order = sorted(range(len(jobs)), key=lambda j: not (jobs[j][0] == "proposed" and jobs[j][2] is None and own_law))
+    law_tags: dict[int, str] = {}
+    for j in order:
+        name, kind, agent = jobs[j]
+        if agent is None:
+            for g, (label, scs) in enumerate(groups):
+                pieces.append(_Piece("baseline", (name, g), _cost(scs, 0.0), f"{name} / {label}", j))
+            continue
+        path, model, meta, norm = agent
+        period = float(meta["env_kwargs"].get("control_period", 0.01))
+        # the law on the same episodes and noise as this agent's: one piece for every agent that
+        # shares its env set-up (control period, noise draws), all groups the cache lacks in one go
         kw = law_env_kwargs(meta)
         tag = json.dumps(kw, sort_keys=True, default=str)
-        keys = {label: law_key("env", kw.get("observer", "leso"), scs, seeds[label], kw) for label, scs in groups}
-        missing = []
-        for label, scs in groups:
-            if (label, tag) in law_cache:
-                continue
-            hit = None if fresh else load_law(keys[label], len(scs))
-            if hit is not None:
-                law_cache[(label, tag)] = hit[0]
-            else:
-                missing.append((label, scs))
-        if missing:
-            t0 = time.perf_counter()
-            computed = law_reference_groups([scs for _, scs in missing], meta, args.threads)
-            total = sum(len(scs) for _, scs in missing)
-            wall = time.perf_counter() - t0
-            for (label, scs), stats in zip(missing, computed):
-                law_cache[(label, tag)] = stats
-                store_law(keys[label], stats, wall * len(scs) / total)
-        return [law_cache[(label, tag)] for label, _ in groups]
+        first_of_tag = tag not in law_tags.values()
+        law_tags[j] = tag
+        if first_of_tag:
+            keys = [law_key("env", kw.get("observer", "leso"), scs, _noise_seeds(scs), kw) for _, scs in groups]
+            missing = []
+            for g, (_, scs) in enumerate(groups):
+                hit = None if ctx.fresh else load_law(keys[g], len(scs))
+                if hit is not None:
+                    laws[(tag, g)] = hit[0]
+                else:
+                    missing.append(g)
+            if missing:
+                pieces.append(_Piece("law_env", (meta, missing, [keys[g] for g in missing]),
+                                     _cost([sc for g in missing for sc in groups[g][1]], 4e-5, period),
+                                     f"{name} / the law's reference"))
+        pieces.append(_Piece("agent", (name, path if n_jobs > 1 else (model, meta, norm)),
+                             _cost(whole, 8e-5, period), name, j))
+    if any(agent is None for _, _, agent in jobs) and not own_law:
+        for g, (label, scs) in enumerate(groups):
+            pieces.append(_Piece("inner_law", (g,), _cost(scs, 0.0), f"the law / {label}"))
+
     if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
         begin_output_set(args.out, meta_out.get("command"))
     bar = None
@@ -717,97 +966,66 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     # order of the jobs and groups, whatever order they ran in
     results: list[tuple[int, int, dict[str, Any], list[Any]]] = []
     traj_files: list[Path] = []
-    want_first = args.out is not None and not args.no_plots
+    waiting: list[tuple[int, int, dict[str, Any], tuple[str, int]]] = []  # records waiting for their law
+    running: list[str] = []
 
-    def finish(j: int, name: str, kind: str, meta: Any, g: int, stats: list[Any], first: list[Any], wall: float,
-               law: list[Any], reused: bool = False) -> None:
+    def finish(j: int, g: int, part: dict[str, Any], law: list[Any]) -> None:
+        name, kind, agent = jobs[j]
         label, scs = groups[g]
         prov = _group_provenance(label, scs, kwargs)
-        if reused:  # the episodes were kept from an earlier identical run (agents/lawcache.py)
+        if part.get("reused"):  # the episodes were kept from an earlier identical run (agents/lawcache.py)
             prov.update(law_reused=True)
-        if meta is not None:
+        if agent is not None:
+            meta = agent[2]
             prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
                         observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
         else:
             prov.update(observer=args.observer)
-        rec = summarize(stats, name, kind, label, scs[0].sim.dt, wall_s=wall, law=law, provenance=prov)
-        results.append((j, g, rec, first))
+        rec = summarize(part["stats"], name, kind, label, scs[0].sim.dt, wall_s=part["wall"], law=law,
+                        provenance=prov)
+        results.append((j, g, rec, part["first"]))
         results.sort(key=lambda r: r[:2])
         if bar is not None:
             bar.update(1)
         if args.out is not None:  # finished records are kept if the run is interrupted
             write_results([r[2] for r in results], args.out, meta_out)
 
-    def reduce(name: str, g: int, k: int, tr: Any, stats: list[Any], first: list[Any]) -> None:
-        # each episode is reduced as it comes: only the group's first is kept (for the plots), and
-        # with --save-traj each is written as it finishes, so memory does not grow with the number
-        # of episodes
-        if k == 0 and want_first:
-            first.append(_PlotTrace(tr))
-        if args.save_traj:
-            path = args.out / "traj" / f"{groups[g][0]}__{name}__{k}.npz"
-            tr.save_npz(path)
-            traj_files.append(path)
-        stats.append(episode_stats(tr))
+    def settle() -> None:
+        # every record whose law is known now
+        for item in [w for w in waiting if w[3] in laws]:
+            waiting.remove(item)
+            finish(item[0], item[1], item[2], laws[item[3]])
 
-    # the proposed law's own row runs first: it is every other baseline's reference too
-    order = sorted(range(len(jobs)), key=lambda j: not (jobs[j][0] == "proposed" and jobs[j][2] is None
-                                                       and args.observer == "leso"))
+    def started(piece: _Piece) -> None:
+        running.append(piece.label)
+        if bar is not None:
+            bar.set_postfix_str(", ".join(running[-2:]) if n_jobs > 1 else piece.label)
+
+    def done(piece: _Piece, result: Any) -> None:
+        if piece.label in running:
+            running.remove(piece.label)
+        if piece.kind == "baseline":
+            name, g = piece.args
+            if name == "proposed" and own_law:
+                laws.setdefault(("inner", g), result["stats"])  # the law is this row itself
+            traj_files.extend(result["files"])
+            waiting.append((piece.job, g, result, ("inner", g)))
+        elif piece.kind == "inner_law":
+            laws[("inner", piece.args[0])] = result
+        elif piece.kind == "law_env":
+            tag = json.dumps(law_env_kwargs(piece.args[0]), sort_keys=True, default=str)
+            for g, stats in zip(piece.args[1], result):
+                laws[(tag, g)] = stats
+        else:
+            j = piece.job
+            traj_files.extend(result["files"])
+            for g, (stats, first) in enumerate(result["per"]):
+                waiting.append((j, g, {"stats": stats, "first": first, "wall": result["walls"][g]},
+                                (law_tags[j], g)))
+        settle()
+
     try:
-        for j in order:
-            name, kind, agent = jobs[j]
-            if agent is None:
-                for g, (label, scs) in enumerate(groups):
-                    if bar is not None:
-                        bar.set_postfix_str(f"{name} / {label}")
-                    stats: list[Any] = []
-                    first: list[Any] = []
-                    # the law's own row is every other row's reference: kept between runs
-                    own_law = name == "proposed" and args.observer == "leso"
-                    hit = (load_law(inner_key(label, scs), len(scs))
-                           if own_law and not fresh and not args.save_traj else None)
-                    if hit is not None:
-                        stats, wall = hit
-                        if want_first:  # the plots' trace: the group's first episode alone
-                            first.append(_PlotTrace(next(controller_episodes(name, scs[:1], args.threads))))
-                    else:
-                        t0 = time.perf_counter()
-                        for k, tr in enumerate(controller_episodes(name, scs, args.threads, args.observer)):
-                            reduce(name, g, k, tr, stats, first)
-                            del tr
-                        wall = time.perf_counter() - t0
-                        if own_law:
-                            store_law(inner_key(label, scs), stats, wall)
-                    if name == "proposed" and args.observer == "leso":
-                        law = law_cache.setdefault((label, "inner"), stats)  # the law is this row itself
-                    elif (label, "inner") in law_cache:
-                        law = law_cache[(label, "inner")]
-                    else:
-                        law = law_cache.setdefault((label, "inner"), inner_law(label, scs))
-                    finish(j, name, kind, None, g, stats, first, wall, law, hit is not None)
-                continue
-            model, meta, norm = agent
-            if bar is not None:
-                bar.set_postfix_str(f"{name} / the law's reference")
-            laws = laws_for(meta)
-            if bar is not None:
-                bar.set_postfix_str(name)
-            # the groups' episodes share batched envs: a group's wall time is its share (by episodes)
-            # of the batches that stepped it
-            walls = [0.0] * len(groups)
-
-            def on_batch(parts: list[tuple[int, int, int]], wall_s: float) -> None:
-                total = sum(hi - lo for _, lo, hi in parts)
-                for g, lo, hi in parts:
-                    walls[g] += wall_s * (hi - lo) / total
-            per: list[tuple[list[Any], list[Any]]] = [([], []) for _ in groups]
-            for g, tr in agent_group_episodes(model, meta, norm, [scs for _, scs in groups], args.threads,
-                                              on_batch=on_batch):
-                stats, first = per[g]
-                reduce(name, g, len(stats), tr, stats, first)
-                del tr
-                if len(stats) == len(groups[g][1]):
-                    finish(j, name, kind, meta, g, stats, first, walls[g], laws[g])
+        _execute(ctx, pieces, n_jobs, done, started)
     except KeyboardInterrupt:
         print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
                                            "and manifest.json marks the set incomplete" if args.out else ""),

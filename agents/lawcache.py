@@ -118,15 +118,28 @@ def _decode(v: Any) -> Any:
     return v
 
 
-def _folder() -> Path:
-    return cache_dir() / "law"
+_FOLDER: Path | None = None
+"""Set by :func:`use_folder`; None: ``law`` in blf-gym's cache folder."""
+
+
+def folder() -> Path:
+    """Where the law's episodes are kept: ``law`` in blf-gym's cache folder
+    (:func:`blf_gym.io.cache_dir`) unless :func:`use_folder` named another."""
+    return _FOLDER if _FOLDER is not None else cache_dir() / "law"
+
+
+def use_folder(path: Path | None) -> None:
+    """Keep the law's episodes in ``path`` from now on (None: the default); blf-eval's worker
+    processes take their parent's folder so."""
+    global _FOLDER
+    _FOLDER = None if path is None else Path(path)
 
 
 def load_law(key: str, count: int) -> tuple[list[EpisodeStats], float] | None:
     """The law's ``count`` episodes stored under ``key`` and the wall time they took when they were
     computed, or None (not there, unreadable, or not what the key says)."""
     try:
-        doc = json.loads((_folder() / f"{key}.json").read_text())
+        doc = json.loads((folder() / f"{key}.json").read_text())
         if doc.get("format") != FORMAT or doc.get("key") != key or len(doc["episodes"]) != count:
             return None
         stats = [EpisodeStats(**{f: _decode(ep[f]) for f in EpisodeStats._fields}) for ep in doc["episodes"]]
@@ -142,6 +155,6 @@ def store_law(key: str, stats: Sequence[EpisodeStats], wall_s: float) -> None:
            "episodes": [{f: _encode(getattr(s, f)) for f in EpisodeStats._fields} for s in stats]}
     try:
         # NaN and inf stay as they are (a diverged episode's sums): only Python reads these files
-        atomic_write_text(_folder() / f"{key}.json", json.dumps(doc, allow_nan=True))
+        atomic_write_text(folder() / f"{key}.json", json.dumps(doc, allow_nan=True))
     except OSError:
         pass

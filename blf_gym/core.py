@@ -401,8 +401,8 @@ class _Record:
     written. When they run out, the slabs that no episode reads any more are dropped, and the store
     grows only if there are none."""
 
-    def __init__(self, N: int, m: int, n: int, steps: int) -> None:
-        self.shape = (N, m, len(CHANNELS), n)
+    def __init__(self, N: int, m: int, n: int, steps: int, channels: int = len(CHANNELS)) -> None:
+        self.shape = (N, m, channels, n)
         self.steps = max(1, steps)
         self._clear()
 
@@ -479,6 +479,7 @@ class EnvCore:
         residual_filter: str | None = None,
         threads: int | None = None,
         record: bool = False,
+        record_channels: Sequence[str] | None = None,
         single: bool = False,
     ) -> None:
         # every argument is checked here, before anything is built: ValueError naming it and
@@ -488,6 +489,14 @@ class EnvCore:
         self.num_envs = check_int(o, "num_envs", num_envs, lo=1, hi=MAX_ARMS,
                                   hint=" (blf_gym.core.MAX_ARMS; each arm keeps per-episode arrays)")
         self.record = check_bool(o, "record", record)
+        if record_channels is None:
+            self.record_channels = CHANNELS
+        else:
+            names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
+            if len(set(names)) != len(names) or any(not isinstance(c, str) or c not in CHANNELS for c in names):
+                raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
+                                 f"all; 't' is always kept), got {record_channels!r}")
+            self.record_channels = names if "t" in names else ("t", *names)
         if self.single and self.num_envs != 1:
             raise ValueError("a single env core has num_envs == 1")
         if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
@@ -630,7 +639,13 @@ class EnvCore:
         self._ref = np.zeros((N, 3 * n))
         self._bnd = np.zeros((N, BOUND_LEN))
         self._obs_noise = np.zeros((N, n))
-        self._record = _Record(N, self.samples_per_period, n, self.max_episode_steps) if self.record else None
+        self._record = (_Record(N, self.samples_per_period, n, self.max_episode_steps, len(self.record_channels))
+                        if self.record else None)
+        # with some channels recorded, the kernel writes a step's samples here and they are copied out
+        self._rec_pick = (None if self.record_channels == CHANNELS
+                          else np.array([CHANNELS.index(c) for c in self.record_channels]))
+        self._rec_all = (np.empty((N, self.samples_per_period, len(CHANNELS), n))
+                         if self.record and self._rec_pick is not None else None)
         self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
         self._ep_int[:, EP_FIRST_VIOL] = -1
         self._ep_f = np.zeros((N, EP_E2_JOINT + n))
@@ -949,8 +964,10 @@ class EnvCore:
             self.steps_per_period, residual=residual, noise=noise,
             terminate=self.terminate_on_violation,
             record_samples=self.samples_per_period if rec is not None else 0,
-            out=None if rec is None else rec.slab())
+            out=None if rec is None else rec.slab() if self._rec_all is None else self._rec_all)
         if rec is not None:
+            if self._rec_all is not None:
+                np.take(self._rec_all, self._rec_pick, axis=2, out=rec.slab())
             rec.commit(nrec)
         self.steps += 1
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
@@ -1048,17 +1065,17 @@ class EnvCore:
 
     def trajectory(self, i: int = 0, release: bool = False):
         """Arm i's current episode so far on the 1 ms grid, as a
-        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``), with the same counters
-        as the inner path's: violating integration steps, the first one, saturated steps and
-        divergence. ``release=True`` frees the arm's record once it is copied out (an evaluation
+        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``; its signals are the
+        ``record_channels``, all by default), with the same counters as the inner path's:
+        violating integration steps, the first one, saturated steps and divergence. ``release=True`` frees the arm's record once it is copied out (an evaluation
         that reduces each episode as it comes keeps one copy, not two)."""
-        from .simulate import CHANNELS, Trajectory, divergence_message
+        from .simulate import Trajectory, divergence_message
 
         if not self.record:
             raise ValueError("trajectories are kept only with record=True")
         r = self._record.samples(i, release)
         signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
-                   for k, name in enumerate(CHANNELS)}
+                   for k, name in enumerate(self.record_channels)}
         ei = self._ep_int[i]
         dt = self.sim.dt
         code = int(ei[EP_DIV_CODE])

@@ -165,8 +165,9 @@ class PlanarBLFEnv(gym.Env):
     1e-4), ``variations`` (dict of :data:`blf_gym.scenarios.VARIATIONS`; with
     ``scenario="randomized"`` they override the suite's draw), ``reward_weights``,
     ``render_mode`` ("rgb_array" or "human"), ``record`` (False; True keeps the episode's
-    1 ms signals for :meth:`trajectory`). ``reset(options=...)`` takes the same variations per
-    episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
+    1 ms signals for :meth:`trajectory`), ``record_channels`` (the names of
+    :data:`blf_gym.simulate.CHANNELS` kept with ``record``, default all; fewer keep less
+    memory). ``reset(options=...)`` takes the same variations per episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
     step, as the sampled baseline policies use); steps without a 1 ms sample then have no
     tracking or torque term in their reward.
 

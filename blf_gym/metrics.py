@@ -99,9 +99,14 @@ def cvar_upper(values: Sequence[float], alpha: float = 0.5) -> float:
     return float(np.mean(v[:k]))
 
 
+METRIC_CHANNELS = ("t", "e1", "k_a", "k_b", "u", "saturated")
+"""The signals of a trajectory that :func:`episode_stats` and the records read (an env that records
+only these, ``record_channels=METRIC_CHANNELS``, keeps about a third of the memory)."""
+
+
 def _traj_arrays(traj: Any) -> dict[str, np.ndarray]:
     s = traj.signals if hasattr(traj, "signals") else traj
-    return {k: np.asarray(s[k]) for k in ("t", "e1", "k_a", "k_b", "u", "saturated")}
+    return {k: np.asarray(s[k]) for k in METRIC_CHANNELS}
 
 
 class EpisodeStats(NamedTuple):

@@ -15,7 +15,7 @@ import pytest
 import agents.evaluate as ev
 from agents.lawcache import _package_files, code_digest, law_key, load_law, store_law
 from agents.loading import PRETRAINED
-from blf_gym.metrics import EpisodeStats, episode_stats
+from blf_gym.metrics import EpisodeStats
 
 AGENT = str(PRETRAINED / "ppo_residual")
 ARGS = ["--suite-seeds", "3", "--duration", "0.3", "--no-progress", "--no-plots"]
@@ -25,7 +25,7 @@ ARGS = ["--suite-seeds", "3", "--duration", "0.3", "--no-progress", "--no-plots"
 def cache():
     import agents.lawcache as lawcache
 
-    return lawcache._folder()  # this test's own, empty (conftest.py)
+    return lawcache.folder()  # this test's own, empty (conftest.py)
 
 
 def _records(out: Path) -> list[dict]:
@@ -54,6 +54,7 @@ def _count(monkeypatch) -> dict[str, int]:
 
 def test_a_second_run_reuses_the_law_and_scores_to_the_bit(cache, tmp_path, monkeypatch, capsys):
     calls = _count(monkeypatch)
+    ARGS = [*globals()["ARGS"], "--jobs", "1"]  # the counting patch holds in this process only
     assert ev.main(["--agents", AGENT, "--out", str(tmp_path / "a"), *ARGS]) == 0
     # four groups (two presets, three randomized and three stress episodes): the law's row on the
     # inner path per group, and the agent's env reference for all groups in one batched run

@@ -1,0 +1,129 @@
+"""blf-eval in worker processes (``--jobs``): the same records, to the bit, as in one process; a
+Ctrl-C ends the workers at once and keeps what finished; and the env records only the signals
+the metrics read when asked (``record_channels``), with the same numbers."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agents.evaluate import main as eval_main
+from agents.loading import PRETRAINED
+from blf_gym.core import EnvCore
+from blf_gym.metrics import METRIC_CHANNELS
+from blf_gym.simulate import CHANNELS
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _records(out: Path) -> list[dict]:
+    return [{k: v for k, v in r.items() if k != "wall_s"}
+            for r in json.loads((out / "results.json").read_text())["records"]]
+
+
+@pytest.mark.slow
+def test_workers_score_what_one_process_scores(tmp_path, capsys):
+    # two agents with different control periods (two law references), two baselines, every kind of
+    # piece; trajectories saved by the workers too
+    common = ["--controllers", "proposed", "bc", "--agents", str(PRETRAINED / "ppo_residual"),
+              str(PRETRAINED / "ppo_plain_searched"), "--suite-seeds", "3", "--duration", "0.5",
+              "--no-progress", "--no-plots", "--save-traj"]
+    assert eval_main([*common, "--jobs", "1", "--out", str(tmp_path / "one")]) == 0
+    assert eval_main([*common, "--jobs", "2", "--out", str(tmp_path / "two"), "--fresh-law"]) == 0
+    one, two = _records(tmp_path / "one"), _records(tmp_path / "two")
+    # 4 policies x 4 groups, in the same order, every field but the wall time the same
+    assert len(one) == 16 and one == two
+    files = sorted(p.name for p in (tmp_path / "one" / "traj").iterdir())
+    assert files == sorted(p.name for p in (tmp_path / "two" / "traj").iterdir()) and len(files) == 4 * 8
+    for name in files:
+        a, b = np.load(tmp_path / "one" / "traj" / name), np.load(tmp_path / "two" / "traj" / name)
+        assert sorted(a.files) == sorted(b.files) and {c for c in CHANNELS} <= set(a.files)
+        for k in a.files:
+            assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), (name, k)
+
+
+def test_jobs_must_be_a_positive_count(capsys):
+    assert eval_main(["--jobs", "0", "--agents", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["blf-eval: error: --jobs must be an integer >= 1, got 0"]
+
+
+def _children(pid: int) -> list[int]:
+    try:
+        return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+    except OSError:
+        return []
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_ctrl_c_ends_the_workers_and_keeps_the_finished_records(tmp_path):
+    out = tmp_path / "out"
+    # the presets' baseline rows finish in a second or two; the stress agents take far longer
+    cmd = [sys.executable, "-m", "agents.evaluate", "--controllers", "proposed", "--agents",
+           str(PRETRAINED / "ppo_residual"), "--suite", "stress", "--suite-seeds", "50", "--jobs", "2",
+           "--no-progress", "--no-plots", "--out", str(out)]
+    with open(tmp_path / "stderr", "w") as err:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=err,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        try:
+            deadline = time.monotonic() + 300
+            while time.monotonic() < deadline and proc.poll() is None:
+                if (out / "results.json").exists() and len(_children(proc.pid)) >= 2:
+                    break
+                time.sleep(0.2)
+            workers = _children(proc.pid)
+            assert proc.poll() is None and len(workers) >= 2, (tmp_path / "stderr").read_text()
+            proc.send_signal(signal.SIGINT)  # to the main process alone: it must end its workers
+            rc = proc.wait(timeout=60)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert rc == 130, (tmp_path / "stderr").read_text()
+    time.sleep(1.0)
+    for w in workers:  # ended, not left running their pieces
+        assert not Path(f"/proc/{w}").exists() or "zombie" in Path(f"/proc/{w}/status").read_text()
+    recs = json.loads((out / "results.json").read_text())["records"]
+    assert recs and len(recs) < 6  # kept what finished, and it had not finished
+    assert json.loads((out / "manifest.json").read_text())["complete"] is False
+    assert "interrupted" in (tmp_path / "stderr").read_text()
+
+
+def test_an_env_that_records_the_metrics_channels_keeps_the_same_numbers():
+    from agents.evaluate import build_scenarios
+
+    scs = build_scenarios([], 3, {}, 0.3, "randomized")[0][1]
+    assert all(sc.angle_noise_std > 0 for sc in scs)  # noisy arms: each draws its own stream
+    cores = [EnvCore(3, controller="proposed", record=True, threads=1, record_channels=ch, duration=0.3,
+                     terminate_on_violation=False)
+             for ch in (None, METRIC_CHANNELS, ("u",))]
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, size=(30, 3, 3))
+    for core in cores:
+        for i in range(3):
+            core.rngs[i] = np.random.default_rng(100 + i)
+        core.reset_envs(range(3), scenarios=scs)
+        for a in actions:
+            core.step(a)
+    for i in range(3):
+        full, some, one = (c.trajectory(i) for c in cores)
+        assert set(full.signals) == set(CHANNELS)
+        assert tuple(some.signals) == METRIC_CHANNELS and tuple(one.signals) == ("t", "u")
+        assert full.n_samples == some.n_samples == one.n_samples == 300
+        for k in METRIC_CHANNELS:
+            assert np.array_equal(full.signals[k], some.signals[k]), k
+        assert np.array_equal(full.signals["u"], one.signals["u"])
+        assert some.step_violations == full.step_violations and some.diverged == full.diverged
+
+
+@pytest.mark.parametrize("bad", [("e1", "e1"), ("e9",), (3,)])
+def test_record_channels_refuses_unknown_or_repeated_names(bad):
+    with pytest.raises(ValueError, match="record_channels must be distinct names among"):
+        EnvCore(1, record=True, record_channels=bad)
