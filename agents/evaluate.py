@@ -203,6 +203,7 @@ class _Actor:
             from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel
 
             self._torch = torch
+            self.device = pol.device  # SB3 finds it by walking the parameters, at every call
             cls = type(pol)
             self.mean = (isinstance(pol, ActorCriticPolicy) and isinstance(pol.action_dist, DiagGaussianDistribution)
                          and not pol.squash_output
@@ -248,7 +249,7 @@ class _Actor:
             return self.model.predict(obs, deterministic=True)[0]
         torch = self._torch
         space = pol.action_space
-        x = torch.as_tensor(np.array(obs).reshape((-1, *pol.observation_space.shape)), device=pol.device)
+        x = torch.as_tensor(np.array(obs).reshape((-1, *pol.observation_space.shape)), device=self.device)
         with torch.inference_mode():
             if self.layers is not None:
                 for f in self.layers:
@@ -284,6 +285,11 @@ def _batch_plan(groups: Sequence[Sequence[Scenario]], batch: int) -> list[list[t
     return plan
 
 
+LAW_HOLD_S = 1.0
+"""The law's reference runs advance this much simulated time per kernel call (``EnvCore.hold``):
+the same numbers as one call per control period, without the Python of a step for each."""
+
+
 def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Sequence[Sequence[Scenario]],
                          threads: int | None = None, batch: int = AGENT_BATCH,
                          on_batch: Any = None, channels: Sequence[str] | None = None) -> Iterator[tuple[int, Any]]:
@@ -299,13 +305,17 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     its trajectory is handed over, so a caller that reduces them keeps at most one batch of records.
     ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time.
     ``channels`` are the signals each trajectory keeps (``EnvCore``'s ``record_channels``; default
-    all): :data:`blf_gym.metrics.METRIC_CHANNELS` is what the records read, a third of the memory."""
+    all): :data:`blf_gym.metrics.METRIC_CHANNELS` is what the records read, a third of the memory.
+
+    ``model`` None is the proposed law alone (a zero residual, the agent's env set-up otherwise): its
+    episodes advance :data:`LAW_HOLD_S` at a time (``EnvCore.hold``), each arm drawing the same noise
+    as a stepped agent's, so the trajectories are those of a zero residual stepped period by period."""
     from blf_gym.core import EnvCore
 
     # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
     # the same env the loader checked the agent against
     kw = scoring_env_kwargs(meta["env_kwargs"])
-    act = _Actor(model)
+    act = None if model is None else _Actor(model)
     for parts in _batch_plan(groups, batch):
         t0 = time.perf_counter()
         scs = [sc for g, lo, hi in parts for sc in groups[g][lo:hi]]
@@ -318,10 +328,17 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
             r += hi - lo
         core.reset_envs(range(len(scs)), scenarios=scs)
         obs = core.observe()
-        for _ in range(int(round(scs[0].sim.duration / core.control_period))):
-            o = norm.normalize_obs(obs) if norm is not None else obs
-            acts = [act(o[rs]) for rs in rows]
-            obs, *_ = core.step(acts[0] if len(acts) == 1 else np.concatenate(acts))
+        periods = int(round(scs[0].sim.duration / core.control_period))
+        if act is None and core.steps_per_period % core.sim.steps_per_sample == 0:
+            zero, chunk = np.zeros((len(scs), core.n)), max(1, int(round(LAW_HOLD_S / core.control_period)))
+            for lo in range(0, periods, chunk):
+                core.hold(zero, min(chunk, periods - lo))
+        else:  # an agent, or the law with periods shorter than a sample (hold needs whole samples)
+            policy = act if act is not None else (lambda o: np.zeros((o.shape[0], core.n)))
+            for _ in range(periods):
+                o = norm.normalize_obs(obs) if norm is not None else obs
+                acts = [policy(o[rs]) for rs in rows]
+                obs, *_ = core.step(acts[0] if len(acts) == 1 else np.concatenate(acts))
         if on_batch is not None:
             on_batch(parts, time.perf_counter() - t0)
         r = 0
@@ -351,7 +368,8 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
 
 
 class _ZeroResidual:
-    """The proposed law alone, as an 'agent' on the env path: a zero residual."""
+    """The proposed law alone as an agent stepped period by period would be: a zero residual (the
+    tests check the law's held runs, ``agent_group_episodes(None, ...)``, against it)."""
 
     def __init__(self, n: int = 3) -> None:
         self.n = n
@@ -401,7 +419,7 @@ def law_reference_groups(groups: Sequence[Sequence[Scenario]], meta: dict[str, A
         return [law_reference(scs, None, threads) for scs in groups]
     out: list[list[EpisodeStats]] = [[] for _ in groups]
     law = {"mode": "residual", "env_kwargs": law_env_kwargs(meta)}
-    for g, tr in agent_group_episodes(_ZeroResidual(), law, None, groups, threads, channels=METRIC_CHANNELS):
+    for g, tr in agent_group_episodes(None, law, None, groups, threads, channels=METRIC_CHANNELS):
         out[g].append(episode_stats(tr))
     return out
 

@@ -646,6 +646,13 @@ class EnvCore:
                           else np.array([CHANNELS.index(c) for c in self.record_channels]))
         self._rec_all = (np.empty((N, self.samples_per_period, len(CHANNELS), n))
                          if self.record and self._rec_pick is not None else None)
+        # the picked channels as runs of consecutive ones: (first in the record, first in CHANNELS, count)
+        self._rec_runs: list[tuple[int, int, int]] = []
+        for d, c in enumerate([] if self._rec_pick is None else self._rec_pick.tolist()):
+            if self._rec_runs and self._rec_runs[-1][1] + self._rec_runs[-1][2] == c:
+                self._rec_runs[-1] = (self._rec_runs[-1][0], self._rec_runs[-1][1], self._rec_runs[-1][2] + 1)
+            else:
+                self._rec_runs.append((d, c, 1))
         self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
         self._ep_int[:, EP_FIRST_VIOL] = -1
         self._ep_f = np.zeros((N, EP_E2_JOINT + n))
@@ -967,7 +974,7 @@ class EnvCore:
             out=None if rec is None else rec.slab() if self._rec_all is None else self._rec_all)
         if rec is not None:
             if self._rec_all is not None:
-                np.take(self._rec_all, self._rec_pick, axis=2, out=rec.slab())
+                self._pick_channels(self._rec_all, rec.slab())
             rec.commit(nrec)
         self.steps += 1
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
@@ -1039,6 +1046,56 @@ class EnvCore:
         obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
         return obs, rewards, terminated, truncated, info
 
+    def hold(self, actions: Any, periods: int) -> None:
+        """``periods`` control periods of every arm with the same ``actions``, in one kernel call,
+        for runs read only through :meth:`trajectory` (blf-eval's runs of the law alone, a zero
+        residual). The state, the record, the episode's counters and each arm's random stream are
+        what ``periods`` calls of :meth:`step` would leave, bit for bit: the kernel's numbers do not
+        depend on how a run is cut into calls, and a noisy arm draws the same numbers, the
+        observation noise it does not use included. (The running sums behind
+        :meth:`episode_metrics`' RMSE are added per call, so they may differ in the last bits.)
+        No observation, reward or info is made, so it needs a reward that keeps no state across
+        steps (no score term, not relative), termination off, a control period of whole 1 ms
+        samples and ``periods`` that stay within every arm's episode; ValueError otherwise."""
+        o = f"{self.owner} hold:"
+        periods = check_int(o, "periods", periods, lo=1)
+        if self._score_w > 0 or self.weights.relative or self.terminate_on_violation:
+            raise ValueError(f"{o} needs reward_weights with no score term and relative=False, and "
+                             "terminate_on_violation=False (their steps read the steps before)")
+        if self.steps_per_period % self.sim.steps_per_sample:
+            raise ValueError(f"{o} needs a control period of whole 1 ms samples, got {self.control_period} s")
+        if int(self.steps.max()) + periods > self.max_episode_steps:
+            raise ValueError(f"{o} periods={periods} would run past the episode's end "
+                             f"({self.max_episode_steps} periods, {int(self.steps.max())} done)")
+        a = self.check_actions(actions)
+        N, n, spp, m = self.num_envs, self.n, self.steps_per_period, self.samples_per_period
+        residual = a * (self.residual_scale if self.residual else self._umax[:, None])
+        noise = None
+        if self._noisy:
+            # as step() draws them, period after period: the angle noise, then the next observation's
+            k = spp * n
+            z = np.zeros((N, periods, k + n))
+            for i in self._noisy:
+                self.rngs[i].standard_normal(out=z[i])
+            z *= self._stds[:, None, None]
+            noise = z[:, :, :k].reshape(N, periods * spp, n)
+        rec = self._record
+        out = None if rec is None else np.empty((N, periods * m, len(CHANNELS), n))
+        _, nrec, status = self.loop.advance(periods * spp, residual=residual, noise=noise, terminate=False,
+                                            record_samples=periods * m if rec is not None else 0, out=out)
+        if rec is not None:
+            for j in range(periods):
+                part = out[:, j * m : (j + 1) * m]
+                slab = rec.slab()
+                if self._rec_all is None:
+                    slab[...] = part
+                else:
+                    self._pick_channels(part, slab)
+                rec.commit(np.clip(nrec - j * m, 0, m))
+        self.steps += periods
+        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
+        self.last_x3[:] = self.loop.last[:, self._last_slices[2]]
+
     def episode_metrics(self, i: int, termination_reason: str | None = None,
                         truncation_reason: str | None = None) -> dict[str, Any]:
         """Arm i's episode so far, in the benchmark's terms: RMSE per joint (degrees, over its 1 ms
@@ -1062,6 +1119,11 @@ class EnvCore:
             "termination_reason": termination_reason,
             "truncation_reason": truncation_reason,
         }
+
+    def _pick_channels(self, samples: np.ndarray, slab: np.ndarray) -> None:
+        """Copy the recorded channels of ``samples`` (N, m, all channels, n) into ``slab``."""
+        for d, c, k in self._rec_runs:
+            slab[:, :, d : d + k] = samples[:, :, c : c + k]
 
     def trajectory(self, i: int = 0, release: bool = False):
         """Arm i's current episode so far on the 1 ms grid, as a

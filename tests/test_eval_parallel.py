@@ -127,3 +127,62 @@ def test_an_env_that_records_the_metrics_channels_keeps_the_same_numbers():
 def test_record_channels_refuses_unknown_or_repeated_names(bad):
     with pytest.raises(ValueError, match="record_channels must be distinct names among"):
         EnvCore(1, record=True, record_channels=bad)
+
+
+def _stepped_and_held(controller: str | None, action: float, period: float) -> tuple[list, list, list, list]:
+    from agents.evaluate import build_scenarios
+
+    scs = [sc for _, g in build_scenarios(["paper-0.5hz"], 3, {}, 1.0, "stress") for sc in g]
+    out = []
+    for held in (False, True):
+        core = EnvCore(len(scs), controller=controller, record=True, threads=1, duration=1.0, control_period=period,
+                       terminate_on_violation=False, reward_weights={})
+        for i in range(len(scs)):
+            core.rngs[i] = np.random.default_rng(50 + i)
+        core.reset_envs(range(len(scs)), scenarios=scs)
+        core.observe()
+        a = np.full((len(scs), 3), action)
+        if held:
+            for periods in (1, 6, 13, core.max_episode_steps - 20):  # uneven cuts of the episode
+                core.hold(a, periods)
+        else:
+            for _ in range(core.max_episode_steps):
+                core.step(a)
+        out.append(([core.trajectory(i) for i in range(len(scs))], [r.bit_generator.state for r in core.rngs]))
+    return out[0][0], out[1][0], out[0][1], out[1][1]
+
+
+@pytest.mark.parametrize("controller, action, period", [("proposed", 0.0, 0.01), ("proposed", 0.7, 0.002),
+                                                        (None, 1.0, 0.005)])
+def test_holding_an_action_gives_the_trajectories_of_stepping_it(controller, action, period):
+    # the law alone (blf-eval's reference), a residual, and a plain full torque that diverges
+    stepped, held, rng_stepped, rng_held = _stepped_and_held(controller, action, period)
+    assert rng_stepped == rng_held  # every arm drew the same numbers
+    if controller is None:
+        assert all(t.diverged for t in stepped)  # 150 N m on every joint: the arm is lost
+    for a, b in zip(stepped, held):
+        assert set(a.signals) == set(b.signals) == set(CHANNELS) and a.n_samples == b.n_samples > 0
+        for k in CHANNELS:
+            assert np.array_equal(a.signals[k], b.signals[k]), k
+        for f in ("diverged", "diverged_at", "step_violations", "first_violation_step_time", "saturated_steps",
+                  "divergence_code"):
+            assert getattr(a, f) == getattr(b, f), f
+
+
+def test_hold_refuses_what_it_cannot_hold():
+    core = EnvCore(2, controller="proposed", duration=0.1, terminate_on_violation=False, reward_weights={})
+    core.reset_envs(range(2))
+    with pytest.raises(ValueError, match="past the episode's end"):
+        core.hold(np.zeros((2, 3)), 11)
+    with pytest.raises(ValueError, match="periods must be"):
+        core.hold(np.zeros((2, 3)), 0)
+    with pytest.raises(ValueError, match="no score term"):
+        EnvCore(2, controller="proposed", duration=0.1, terminate_on_violation=False).hold(np.zeros((2, 3)), 1)
+    with pytest.raises(ValueError, match="terminate_on_violation=False"):
+        EnvCore(2, controller="proposed", duration=0.1, reward_weights={}).hold(np.zeros((2, 3)), 1)
+    fine = EnvCore(1, controller="proposed", duration=0.1, control_period=5e-4, terminate_on_violation=False,
+                   reward_weights={})
+    with pytest.raises(ValueError, match="whole 1 ms samples"):
+        fine.hold(np.zeros((1, 3)), 1)
+    with pytest.raises(ValueError, match="action must be finite"):
+        core.hold(np.full((2, 3), np.nan), 1)
