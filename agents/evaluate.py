@@ -618,7 +618,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = _parser().parse_args(argv)
     args.command = shlex.join(["blf-eval", *argv])
+    workers: _Workers | None = None
     try:
+        if args.save_traj and args.out is None:
+            raise ValueError("--save-traj needs --out DIR")
         try:
             kwargs = json.loads(args.scenario_kwargs)
         except json.JSONDecodeError as exc:
@@ -651,6 +654,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
                        else [Path(a) for a in args.agents])
+        if args.jobs > 1:  # they boot while the agents load below
+            workers = _Workers(args.jobs, bool(agent_paths))
         if agent_paths:
             # torch on one thread: an agent's network on a batch of 50 rows gains nothing from more,
             # and its idle threads beside the env's (and any other job) made each call 100 times
@@ -664,13 +669,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.controllers and not agents:
             raise ValueError("nothing to evaluate: give --controllers and/or --agents")
     except ValueError as exc:
+        if workers is not None:
+            workers.close(now=True)
         print(f"blf-eval: error: {exc}", file=sys.stderr)
         return 2
-    if args.save_traj and args.out is None:
-        print("blf-eval: error: --save-traj needs --out DIR", file=sys.stderr)
-        return 2
     try:
-        return _run(args, groups, agents, kwargs)
+        return _run(args, groups, agents, kwargs, workers)
     except ValueError as exc:  # e.g. a --duration that is no whole number of an agent's control periods
         print(f"blf-eval: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
@@ -682,6 +686,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         tail = "" if args.out is None else f"; the set in {args.out} is incomplete (no complete manifest.json)"
         print(f"blf-eval: error: {os_error_message(exc, args.out)}{tail}", file=sys.stderr)
         return 2
+    finally:
+        if workers is not None:
+            workers.close(now=True)  # after an error; a finished run has closed them already
 
 
 def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[str, Any]) -> dict[str, Any]:
@@ -831,22 +838,55 @@ def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
 
 _PIECES = {"baseline": _baseline_piece, "inner_law": _inner_law_piece, "law_env": _law_env_piece,
            "agent": _agent_piece}
-_WORKER_CONTEXT: _Context | None = None
 
 
-def _worker_start(ctx: _Context) -> None:
-    """A worker process's set-up: the run's context; Ctrl-C is the main process's to handle (it ends
-    the workers)."""
+def _worker_start() -> None:
+    """A worker process's set-up: Ctrl-C is the main process's to handle (it ends the workers)."""
     import signal
 
-    global _WORKER_CONTEXT
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _WORKER_CONTEXT = ctx
+
+
+def _warm_up(agents: bool) -> None:
+    """What a worker imports before its first piece: torch (on one thread) and SB3 when there are agents."""
+    if agents:
+        import stable_baselines3  # noqa: F401
+        import torch
+
+        torch.set_num_threads(1)
+
+
+def _worker_piece(ctx: _Context, piece: _Piece) -> Any:
     lawcache.use_folder(ctx.law_folder)
+    return _PIECES[piece.kind](ctx, *piece.args)
 
 
-def _worker_piece(piece: _Piece) -> Any:
-    return _PIECES[piece.kind](_WORKER_CONTEXT, *piece.args)
+class _Workers:
+    """blf-eval's worker processes (spawned, not forked: this process has threads, the progress
+    bar's and torch's, that a fork would copy in whatever state they were in). They are started
+    before the agents are loaded, so that they boot (Python, numba, torch: seconds each) while this
+    process checks the agents."""
+
+    def __init__(self, jobs: int, agents: bool) -> None:
+        import concurrent.futures as cf
+        import multiprocessing as mp
+
+        before = set(mp.active_children())
+        self.pool = cf.ProcessPoolExecutor(max_workers=jobs, mp_context=mp.get_context("spawn"),
+                                           initializer=_worker_start)
+        for _ in range(jobs):  # each submit starts a worker while none is idle
+            self.pool.submit(_warm_up, agents)
+        self.processes = [p for p in mp.active_children() if p not in before]
+
+    def close(self, now: bool = False) -> None:
+        """Shut the workers down; ``now``: end them, whatever they are running."""
+        if now:
+            self.pool.shutdown(wait=False, cancel_futures=True)
+            for proc in self.processes:
+                if proc.is_alive():
+                    proc.terminate()
+        else:
+            self.pool.shutdown()
 
 
 def default_jobs() -> int:
@@ -868,27 +908,22 @@ class _WorkerLost(RuntimeError):
     """A worker process ended without its result (killed, out of memory, or never started)."""
 
 
-def _execute(ctx: _Context, pieces: list[_Piece], jobs: int, done: Any, started: Any) -> None:
-    """Run ``pieces``: in this process, in order, with ``jobs`` 1; else in ``jobs`` worker processes,
+def _execute(ctx: _Context, pieces: list[_Piece], workers: _Workers | None, done: Any, started: Any) -> None:
+    """Run ``pieces``: in this process, in order, without ``workers``; else in the worker processes,
     the costliest first (each worker takes the next piece when it is free). ``started(piece)`` and
     ``done(piece, result)`` are called in this process, ``done`` as each piece finishes. The results
-    do not depend on ``jobs``: every piece is computed from its own seeds, whatever runs beside it."""
-    if jobs <= 1 or len(pieces) <= 1:
+    do not depend on the workers: every piece is computed from its own seeds, whatever runs beside it."""
+    if workers is None:
         for piece in pieces:
             started(piece)
             done(piece, _PIECES[piece.kind](ctx, *piece.args))
         return
     import concurrent.futures as cf
-    import multiprocessing as mp
 
-    # spawn, not fork: this process has threads (the progress bar's, torch's) that a fork would copy
-    # in whatever state they were in
-    pool = cf.ProcessPoolExecutor(max_workers=min(jobs, len(pieces)), mp_context=mp.get_context("spawn"),
-                                  initializer=_worker_start, initargs=(ctx,))
     try:
         futures = {}
         for piece in sorted(pieces, key=lambda p: -p.cost):
-            futures[pool.submit(_worker_piece, piece)] = piece
+            futures[workers.pool.submit(_worker_piece, ctx, piece)] = piece
             started(piece)
         for fut in cf.as_completed(futures):
             try:
@@ -901,11 +936,9 @@ def _execute(ctx: _Context, pieces: list[_Piece], jobs: int, done: Any, started:
             done(futures[fut], result)
     except BaseException:
         # Ctrl-C or a failed piece: the workers are ended now, not after their current piece
-        pool.shutdown(wait=False, cancel_futures=True)
-        for proc in mp.active_children():
-            proc.terminate()
+        workers.close(now=True)
         raise
-    pool.shutdown()
+    workers.close()
 
 
 def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None) -> float:
@@ -916,14 +949,14 @@ def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None)
 
 
 def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list,
-         kwargs: dict[str, Any] | None = None) -> int:
+         kwargs: dict[str, Any] | None = None, workers: _Workers | None = None) -> int:
     from blf_gym.metrics import provenance
 
     kwargs = kwargs or {}
     meta_out = provenance(command=getattr(args, "command", None))
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
     jobs += [(meta.get("name", p.parent.name), meta["mode"], (p, model, meta, norm)) for p, model, meta, norm in agents]
-    n_jobs = getattr(args, "jobs", None) or 1
+    n_jobs = 1 if workers is None else getattr(args, "jobs", 1)
     ctx = _Context(groups=groups, observer=args.observer,
                    # the workers share the cores: one thread each unless told
                    threads=args.threads if args.threads is not None or n_jobs <= 1 else 1,
@@ -965,7 +998,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                     missing.append(g)
             if missing:
                 pieces.append(_Piece("law_env", (meta, missing, [keys[g] for g in missing]),
-                                     _cost([sc for g in missing for sc in groups[g][1]], 4e-5, period),
+                                     _cost([sc for g in missing for sc in groups[g][1]], 0.0, period),
                                      f"{name} / the law's reference"))
         pieces.append(_Piece("agent", (name, path if n_jobs > 1 else (model, meta, norm)),
                              _cost(whole, 8e-5, period), name, j))
@@ -1043,7 +1076,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         settle()
 
     try:
-        _execute(ctx, pieces, n_jobs, done, started)
+        _execute(ctx, pieces, workers, done, started)
     except KeyboardInterrupt:
         print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
                                            "and manifest.json marks the set incomplete" if args.out else ""),
