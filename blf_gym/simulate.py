@@ -175,6 +175,22 @@ def _lane_intrinsic(lanes: int):
     return _lane
 
 
+@intrinsic
+def _claim(typingctx, counter):
+    """``_claim(counter)``: atomically add one to ``counter[0]`` and return its value before, so
+    that threads running the kernel on the same batch each take the next block no other has
+    taken (the blocks go to whichever thread is free, so none waits for a slower one)."""
+    if not (isinstance(counter, nbtypes.Array) and counter.ndim == 1 and counter.dtype == nbtypes.int64):
+        return None
+    sig = nbtypes.int64(counter)
+
+    def codegen(context, builder, signature, args):
+        arr = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", arr.data, context.get_constant(nbtypes.int64, 1), "monotonic")
+
+    return sig, codegen
+
+
 LANES = 4
 """Arms per block of the batched kernel (``ClosedLoop(lanes=LANES)``): one AVX2 vector of doubles.
 A batch of N arms is stepped as ceil(N / LANES) blocks; the default build is the same code compiled
@@ -395,7 +411,7 @@ _N_FLAGS = 9
 
 
 def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
-                    noise, terminate, plain, rec, nrec, status, last, scratch, sums, unstable_run):
+                    noise, terminate, plain, rec, nrec, status, last, scratch, sums, unstable_run, taken):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``, the arms
     in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
     :func:`lane_layout`, lanes innermost).
@@ -433,6 +449,9 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     Stops an arm early on divergence (state restored to the last finite one) or, when
     ``terminate``, right after the first step whose end state violates a bound. Records the
     channels of :data:`CHANNELS` into ``rec[b]`` at every step index divisible by ``sps``.
+
+    The blocks are taken in turn through ``taken[0]`` (:func:`_claim`): several threads may run the
+    kernel on the same arrays at once, each block stepped by exactly one of them.
     """
     N = X.shape[0]
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
@@ -440,7 +459,10 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     LN = _LN  # noqa: F821 (lanes per block)
     has_noise = noise.shape[1] > 0
     n_blocks = (N + LN - 1) // LN
-    for blk in range(n_blocks):
+    while True:
+        blk = _claim(taken)
+        if blk >= n_blocks:
+            break
         W = scratch[blk]
         a0 = blk * LN
         # load the lanes (a padding lane past the last arm copies the block's first arm, inactive)
@@ -1099,7 +1121,7 @@ class ClosedLoop:
             raise ValueError(f"threads must be >= 1, got {threads}")
         self.threads = int(threads)
         self._pool = None
-        self._shares: list[tuple[int, int]] = []  # the arms each thread steps (the first: the caller's)
+        self._helpers = 0  # threads beside the caller's that step blocks of this batch
         n = self.n
         if self.controller.nominal.n_links != n or self.observer.nominal.n_links != n:
             raise ValueError("controller/observer nominal model must have as many links as the plant")
@@ -1264,36 +1286,26 @@ class ClosedLoop:
         status = np.empty((N, N_STATUS), dtype=np.int64)  # every column is set by the kernel
         sums = np.empty((N, SUM_E2_JOINT + n))
         b = self._batch
-        if self.threads <= 1 or self._scratch.shape[0] == 1:
-            self._kernel(self.X, self.ksteps, int(n_steps), float(self.dt), self.steps_per_sample, b.plant,
-                         b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains, res, nz, bool(terminate),
-                         self.plain, rec, nrec, status, self.last, self._scratch, sums, self.unstable_run)
-            self.sums = sums
-            return rec, nrec, status
-        arrays = (self.X, self.ksteps, b.plant, b.nominal, b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains,
-                  res, nz, rec, nrec, status, self.last, sums, self.unstable_run)
-        L = self.lanes
+        taken = np.zeros(1, dtype=np.int64)  # blocks taken so far (the kernel's _claim)
+        args = (self.X, self.ksteps, int(n_steps), float(self.dt), int(self.steps_per_sample), b.plant, b.nominal,
+                b.ref, b.bnd, b.law_gains, b.obs_gains, b.filter_gains, res, nz, bool(terminate), self.plain, rec,
+                nrec, status, self.last, self._scratch, sums, self.unstable_run, taken)
+        blocks = self._scratch.shape[0]
+        if self.threads > 1 and blocks > 1:
+            # The kernel releases the GIL: helper threads run it on the same arrays, each block
+            # going to whichever thread takes it first, and the caller runs it too (one hand-over
+            # fewer). Each arm's arithmetic is the same as alone, whichever thread steps it.
+            if self._pool is None:
+                from concurrent.futures import ThreadPoolExecutor
 
-        def run(lo: int, hi: int) -> None:
-            a = arrays if (lo == 0 and hi == N) else [arr[lo:hi] for arr in arrays]
-            self._kernel(a[0], a[1], int(n_steps), float(self.dt), int(self.steps_per_sample),
-                         a[2], a[3], a[4], a[5], a[6], a[7], a[8], a[9], a[10], bool(terminate), self.plain,
-                         a[11], a[12], a[13], a[14], self._scratch[lo // L : -(-hi // L)], a[15], a[16])
-
-        # The kernel releases the GIL: whole blocks of arms run on parallel threads and write into
-        # views of the shared arrays. Each arm's arithmetic is the same as alone.
-        if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            blocks = self._scratch.shape[0]
-            threads = min(self.threads, blocks)
-            self._pool = ThreadPoolExecutor(max_workers=threads - 1, thread_name_prefix="blf")
-            edges = np.minimum(np.linspace(0, blocks, threads + 1).round().astype(int) * L, N)
-            self._shares = [(int(lo), int(hi)) for lo, hi in zip(edges[:-1], edges[1:])]
-        futures = [self._pool.submit(run, lo, hi) for lo, hi in self._shares[1:]]
-        run(*self._shares[0])  # the first share on this thread: one hand-over fewer
-        for f in futures:
-            f.result()
+                self._helpers = min(self.threads, blocks) - 1
+                self._pool = ThreadPoolExecutor(max_workers=self._helpers, thread_name_prefix="blf")
+            futures = [self._pool.submit(self._kernel, *args) for _ in range(self._helpers)]
+            self._kernel(*args)
+            for f in futures:
+                f.result()
+        else:
+            self._kernel(*args)
         self.sums = sums
         return rec, nrec, status
 
