@@ -6,6 +6,11 @@ import os
 # opened by hand they run in full.
 os.environ.setdefault("BLF_QUICK", "1")
 
+# blf-eval in the test's own process unless a test asks for workers (tests patch its functions, and
+# each run's two spawned workers would boot torch and numba again); tests/test_eval_parallel.py runs
+# the workers with --jobs 2 and checks that they score the same records.
+os.environ.setdefault("BLF_GYM_JOBS", "1")
+
 # Torch on one thread, as the README tells a user training beside the env: the env warns once per
 # process when torch's threads and its own exceed the cores (tests that check that warning run in a
 # fresh interpreter), and on the 2-core CI machine the suite's small trainings run faster so.

@@ -487,7 +487,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--jobs", type=int, default=None, metavar="J",
                    help=f"worker processes scoring pieces of the run at once, the costliest first: a policy's "
                         f"episodes, a baseline's group, the law's reference (default: one per CPU, at most "
-                        f"{MAX_DEFAULT_JOBS}, here {default_jobs()}; 1 runs everything in this process). The "
+                        f"{MAX_DEFAULT_JOBS}, or BLF_GYM_JOBS if set; 1 runs everything in this process). The "
                         "records are the same for any J; each worker runs its kernels on one thread unless "
                         "--threads says otherwise")
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
@@ -890,8 +890,17 @@ class _Workers:
 
 
 def default_jobs() -> int:
-    """blf-eval's default number of worker processes: one per CPU this process may run on, at most
-    :data:`MAX_DEFAULT_JOBS`."""
+    """blf-eval's default number of worker processes: ``BLF_GYM_JOBS`` if set, else one per CPU this
+    process may run on, at most :data:`MAX_DEFAULT_JOBS`."""
+    env = os.environ.get("BLF_GYM_JOBS")
+    if env is not None:
+        try:
+            jobs = int(env)
+        except ValueError:
+            jobs = 0
+        if jobs < 1:
+            raise ValueError(f"BLF_GYM_JOBS must be an integer >= 1 (blf-eval's default --jobs), got {env!r}")
+        return jobs
     try:
         cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # not on Linux

@@ -492,8 +492,12 @@ class EnvCore:
         if record_channels is None:
             self.record_channels = CHANNELS
         else:
-            names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
-            if len(set(names)) != len(names) or any(not isinstance(c, str) or c not in CHANNELS for c in names):
+            try:
+                names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
+            except TypeError:  # not a name nor a sequence of names
+                names = (record_channels,)
+            if len(set(map(repr, names))) != len(names) or any(not isinstance(c, str) or c not in CHANNELS
+                                                               for c in names):
                 raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
                                  f"all; 't' is always kept), got {record_channels!r}")
             self.record_channels = names if "t" in names else ("t", *names)

@@ -30,6 +30,7 @@ from blf_gym.core import RewardWeights
 from blf_gym.env import PlanarBLFEnv
 from blf_gym.params import DT_MIN, SimParams
 from blf_gym.scenarios import SAFE_RANGES, VARIATIONS
+from blf_gym.simulate import CHANNELS
 from blf_gym.vector import PlanarBLFVectorEnv
 
 FAST = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
@@ -280,6 +281,11 @@ BAD_KWARGS = {
     "privileged": st.tuples(NOT_A_BOOL, st.just("privileged")),
     "terminate_on_violation": st.tuples(NOT_A_BOOL, st.just("terminate_on_violation")),
     "record": st.tuples(NOT_A_BOOL, st.just("record")),
+    "record_channels": st.tuples(
+        STRINGS.filter(lambda s: s not in CHANNELS) | st.integers() | st.floats() | BOOLS
+        | st.lists(STRINGS.filter(lambda s: s not in CHANNELS), min_size=1, max_size=2)
+        | st.just(["e1", "e1"]) | st.lists(st.integers(), min_size=1, max_size=2),
+        st.just("record_channels")),
     "angle_noise_std": st.tuples(
         bad_real(0.0, False, extra=st.floats(min_value=2e-4, exclude_min=True, allow_nan=False)),
         st.just("angle_noise_std")),

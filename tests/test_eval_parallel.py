@@ -5,6 +5,7 @@ the metrics read when asked (``record_channels``), with the same numbers."""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -49,10 +50,24 @@ def test_workers_score_what_one_process_scores(tmp_path, capsys):
             assert np.array_equal(a[k], b[k], equal_nan=a[k].dtype.kind == "f"), (name, k)
 
 
-def test_jobs_must_be_a_positive_count(capsys):
+def test_jobs_must_be_a_positive_count(capsys, monkeypatch):
     assert eval_main(["--jobs", "0", "--agents", "--no-progress"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["blf-eval: error: --jobs must be an integer >= 1, got 0"]
+    monkeypatch.setenv("BLF_GYM_JOBS", "two")
+    assert eval_main(["--agents", "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "blf-eval: error: BLF_GYM_JOBS must be an integer >= 1 (blf-eval's default --jobs), got 'two'"]
+
+
+def test_the_default_workers_are_the_cpus_at_most_four_unless_told(monkeypatch):
+    from agents.evaluate import MAX_DEFAULT_JOBS, default_jobs
+
+    monkeypatch.setenv("BLF_GYM_JOBS", "3")
+    assert default_jobs() == 3
+    monkeypatch.delenv("BLF_GYM_JOBS")
+    cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert default_jobs() == max(1, min(cpus, MAX_DEFAULT_JOBS)) and MAX_DEFAULT_JOBS == 4
 
 
 def _children(pid: int) -> list[int]:
