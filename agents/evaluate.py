@@ -693,8 +693,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[str, Any]) -> dict[str, Any]:
     suite = label.split("+")[0]
-    prov: dict[str, Any] = {"scenario_kwargs": kwargs or None,
-                            "noise_seeds": [EVAL_SEED_OFFSET + i for i in range(len(scenarios))]}
+    prov: dict[str, Any] = {"scenario_kwargs": kwargs or None, "noise_seeds": _noise_seeds(scenarios)}
     if suite in SUITES:
         off = suite_seed_offset(suite)
         prov.update(suite=suite, suite_seeds=[off + k for k in range(len(scenarios))])
@@ -724,7 +723,13 @@ class _Context:
 
 
 def _noise_seeds(scs: Sequence[Scenario]) -> list[int]:
+    """The noise seeds of a group's episodes: episode i draws from ``default_rng(EVAL_SEED_OFFSET + i)``."""
     return [EVAL_SEED_OFFSET + i for i in range(len(scs))]
+
+
+def _law_tag(meta: dict[str, Any]) -> str:
+    """Names an agent's law reference: agents with the same :func:`law_env_kwargs` share it."""
+    return json.dumps(law_env_kwargs(meta), sort_keys=True, default=str)
 
 
 @dataclass(frozen=True)
@@ -992,8 +997,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         period = float(meta["env_kwargs"].get("control_period", 0.01))
         # the law on the same episodes and noise as this agent's: one piece for every agent that
         # shares its env set-up (control period, noise draws), all groups the cache lacks in one go
-        kw = law_env_kwargs(meta)
-        tag = json.dumps(kw, sort_keys=True, default=str)
+        kw, tag = law_env_kwargs(meta), _law_tag(meta)
         first_of_tag = tag not in law_tags.values()
         law_tags[j] = tag
         if first_of_tag:
@@ -1073,9 +1077,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         elif piece.kind == "inner_law":
             laws[("inner", piece.args[0])] = result
         elif piece.kind == "law_env":
-            tag = json.dumps(law_env_kwargs(piece.args[0]), sort_keys=True, default=str)
             for g, stats in zip(piece.args[1], result):
-                laws[(tag, g)] = stats
+                laws[(_law_tag(piece.args[0]), g)] = stats
         else:
             j = piece.job
             traj_files.extend(result["files"])

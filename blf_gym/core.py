@@ -955,21 +955,8 @@ class EnvCore:
         stream stays that of a single env."""
         a = self.check_actions(actions)
         N, n = self.num_envs, self.n
-        scale = self.residual_scale if self.residual else self._umax[:, None]
-        residual = a * scale
-        noise = obs_noise = None
-        if self._noisy:
-            # each arm draws from its own generator, and only if it is noisy, so an arm's stream
-            # does not depend on its neighbours (vector env == single envs): the step's angle noise,
-            # then the next observation's, in one call (the same numbers as two calls in turn)
-            k = self.steps_per_period * n
-            z = np.zeros((N, k + n))
-            for i in self._noisy:
-                if skip is None or not skip[i]:
-                    self.rngs[i].standard_normal(out=z[i])
-            z *= self._stds[:, None]
-            noise = z[:, :k].reshape(N, self.steps_per_period, n)
-            obs_noise = z[:, k:]
+        residual = self._torque(a)
+        noise, obs_noise = self._draw_noise(1, skip)
         rec = self._record
         _, nrec, status = self.loop.advance(
             self.steps_per_period, residual=residual, noise=noise,
@@ -1050,6 +1037,29 @@ class EnvCore:
         obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
         return obs, rewards, terminated, truncated, info
 
+    def _torque(self, a: np.ndarray) -> np.ndarray:
+        """Actions in [-1, 1] as N m: the residual's scale, or in plain mode each arm's torque limit."""
+        return a * (self.residual_scale if self.residual else self._umax[:, None])
+
+    def _draw_noise(self, periods: int, skip: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The measurement noise of ``periods`` control periods: (angle noise (N, periods * steps, n),
+        the next observation's (N, n)) in rad, or (None, None) when no arm is noisy. Each arm draws
+        from its own generator, and only if it is noisy and not in ``skip``, so an arm's stream does
+        not depend on its neighbours (vector env == single envs): per period, the angle noise of its
+        integration steps, then the next observation's, in one call for all periods (the same
+        numbers as one call per period, or two)."""
+        if not self._noisy:
+            return None, None
+        N, n, spp = self.num_envs, self.n, self.steps_per_period
+        k = spp * n
+        z = np.zeros((N, periods, k + n))
+        for i in self._noisy:
+            if skip is None or not skip[i]:
+                self.rngs[i].standard_normal(out=z[i])
+        z *= self._stds[:, None, None]
+        return z[:, :, :k].reshape(N, periods * spp, n), z[:, -1, k:]
+
     def hold(self, actions: Any, periods: int) -> None:
         """``periods`` control periods of every arm with the same ``actions``, in one kernel call,
         for runs read only through :meth:`trajectory` (blf-eval's runs of the law alone, a zero
@@ -1073,16 +1083,8 @@ class EnvCore:
                              f"({self.max_episode_steps} periods, {int(self.steps.max())} done)")
         a = self.check_actions(actions)
         N, n, spp, m = self.num_envs, self.n, self.steps_per_period, self.samples_per_period
-        residual = a * (self.residual_scale if self.residual else self._umax[:, None])
-        noise = None
-        if self._noisy:
-            # as step() draws them, period after period: the angle noise, then the next observation's
-            k = spp * n
-            z = np.zeros((N, periods, k + n))
-            for i in self._noisy:
-                self.rngs[i].standard_normal(out=z[i])
-            z *= self._stds[:, None, None]
-            noise = z[:, :, :k].reshape(N, periods * spp, n)
+        residual = self._torque(a)
+        noise, _ = self._draw_noise(periods)
         rec = self._record
         out = None if rec is None else np.empty((N, periods * m, len(CHANNELS), n))
         _, nrec, status = self.loop.advance(periods * spp, residual=residual, noise=noise, terminate=False,
