@@ -646,17 +646,15 @@ class EnvCore:
         self._record = (_Record(N, self.samples_per_period, n, self.max_episode_steps, len(self.record_channels))
                         if self.record else None)
         # with some channels recorded, the kernel writes a step's samples here and they are copied out
-        self._rec_pick = (None if self.record_channels == CHANNELS
-                          else np.array([CHANNELS.index(c) for c in self.record_channels]))
         self._rec_all = (np.empty((N, self.samples_per_period, len(CHANNELS), n))
-                         if self.record and self._rec_pick is not None else None)
-        # the picked channels as runs of consecutive ones: (first in the record, first in CHANNELS, count)
-        self._rec_runs: list[tuple[int, int, int]] = []
-        for d, c in enumerate([] if self._rec_pick is None else self._rec_pick.tolist()):
-            if self._rec_runs and self._rec_runs[-1][1] + self._rec_runs[-1][2] == c:
-                self._rec_runs[-1] = (self._rec_runs[-1][0], self._rec_runs[-1][1], self._rec_runs[-1][2] + 1)
+                         if self.record and self.record_channels != CHANNELS else None)
+        # the recorded channels as runs of consecutive ones: [first in the record, first in CHANNELS, count]
+        self._rec_runs: list[list[int]] = []
+        for d, c in enumerate(CHANNELS.index(name) for name in self.record_channels):
+            if self._rec_runs and sum(self._rec_runs[-1][1:]) == c:
+                self._rec_runs[-1][2] += 1
             else:
-                self._rec_runs.append((d, c, 1))
+                self._rec_runs.append([d, c, 1])
         self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
         self._ep_int[:, EP_FIRST_VIOL] = -1
         self._ep_f = np.zeros((N, EP_E2_JOINT + n))
@@ -1092,11 +1090,7 @@ class EnvCore:
         if rec is not None:
             for j in range(periods):
                 part = out[:, j * m : (j + 1) * m]
-                slab = rec.slab()
-                if self._rec_all is None:
-                    slab[...] = part
-                else:
-                    self._pick_channels(part, slab)
+                self._pick_channels(part, rec.slab())
                 rec.commit(np.clip(nrec - j * m, 0, m))
         self.steps += periods
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
@@ -1127,7 +1121,8 @@ class EnvCore:
         }
 
     def _pick_channels(self, samples: np.ndarray, slab: np.ndarray) -> None:
-        """Copy the recorded channels of ``samples`` (N, m, all channels, n) into ``slab``."""
+        """Copy the recorded channels of ``samples`` (N, m, all channels, n) into ``slab`` (one run,
+        a whole copy, when every channel is recorded)."""
         for d, c, k in self._rec_runs:
             slab[:, :, d : d + k] = samples[:, :, c : c + k]
 
@@ -1135,8 +1130,9 @@ class EnvCore:
         """Arm i's current episode so far on the 1 ms grid, as a
         :class:`blf_gym.simulate.Trajectory` (requires ``record=True``; its signals are the
         ``record_channels``, all by default), with the same counters as the inner path's:
-        violating integration steps, the first one, saturated steps and divergence. ``release=True`` frees the arm's record once it is copied out (an evaluation
-        that reduces each episode as it comes keeps one copy, not two)."""
+        violating integration steps, the first one, saturated steps and divergence.
+        ``release=True`` frees the arm's record once it is copied out (an evaluation that reduces
+        each episode as it comes keeps one copy, not two)."""
         from .simulate import Trajectory, divergence_message
 
         if not self.record:
