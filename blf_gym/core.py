@@ -952,7 +952,7 @@ class EnvCore:
         them next (the vector env's next-step autoreset): they draw no noise, so each arm's random
         stream stays that of a single env."""
         a = self.check_actions(actions)
-        N, n = self.num_envs, self.n
+        N = self.num_envs
         residual = self._torque(a)
         noise, obs_noise = self._draw_noise(1, skip)
         rec = self._record
