@@ -8,7 +8,9 @@ compared. Three figures, each the median within its process:
 * ``step_us``: one closed-loop step (plant + LESO + proposed law, ODE3 at 0.1 ms), amortised over
   a 30 s run in one compiled call;
 * ``env_us``: the residual ``env.step`` through ``gym.make`` (100 integration steps);
-* ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads;
+* ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads (the median
+  step of 300; two threads share this machine's two cores with whatever else runs, so a short
+  sample swung by a third between rounds);
 * ``batch64_us``: one closed-loop step per arm, amortised over a batch of 64 mixed training-suite
   scenarios with measurement noise on, on one thread (100-step calls, the env's control period),
   in blocks of 4 lanes where the tree has them.
@@ -65,10 +67,10 @@ for _ in range(1500):
 venv = gym.make_vec("PlanarBLFResidual-v0", num_envs=64, threads=2)
 venv.reset(seed=0)
 A = np.zeros((64, 3), dtype=np.float32)
-for _ in range(3):
+for _ in range(10):
     venv.step(A)
 vs = []
-for _ in range(40):
+for _ in range(300):
     t0 = time.perf_counter()
     venv.step(A)
     vs.append(time.perf_counter() - t0)
