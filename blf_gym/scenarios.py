@@ -2,30 +2,21 @@
 
 A *variation* changes the paper's plant or task through a few named knobs, each with a unit and
 a documented safe range (inside which the default 0.1 ms step stays stable with the paper's
-gains; outside it the run may be reported as diverged, never silently wrong):
+gains; outside it the run may be reported as diverged, never silently wrong). Each knob is one row
+of :data:`KNOBS`, a :class:`Knob`; everything else here (validation, :func:`apply_variations`, the
+suites' draws, :func:`outside_training`, the table below) reads those rows:
 
-============================  ======  ================  ==========================================
-knob                          unit    safe range        meaning
-============================  ======  ================  ==========================================
-``frequency``                 Hz      [0.05, 0.5]       reference circle frequency f
-``force``                     N       [0, 60]           magnitude of f_ext along +x (paper: 40)
-``force_onset``               s       [0, 30]           switch-on time of f_ext (paper: 20)
-``friction_scale``            -       [0.5, 2.0]        multiplies viscous b and Coulomb c
-``dead_zone_scale``           -       [0.5, 2.0]        multiplies both break points tau_r, tau_l
-``payload``                   kg      [0.08, 0.3]       point mass m3 at the end effector (0.10)
-``initial_error``             rad     |e| <= 0.1        e1(0) per joint (3 values or one for all)
-``angle_noise_std``           rad     [0, 2e-4]         measurement noise on the angles
-============================  ======  ================  ==========================================
+{knob_table}
 
 Payloads lighter than about 0.08 kg make the true M33 so small that the closed loop's fastest mode
 leaves ODE3's stability region at h = 0.1 ms: such runs are reported as diverged. The ranges are
 safe for the paper's controllers; in plain mode with termination off, large actions can spin the
 arm up until the run diverges, which is reported the same way.
 
-The **randomized suite** (``"randomized"``) draws each knob uniformly from :data:`SUITE_RANGES`
-with a caller-supplied ``numpy.random.Generator``; the controller's nominal model stays the
-paper's, and that mismatch is the point. Agents train on it; its evaluation episodes use seeds
-from 10,000 (``agents.evaluate.EVAL_SEED_OFFSET``).
+The **randomized suite** (``"randomized"``) draws each knob uniformly from its suite range
+(:data:`SUITE_RANGES`) with a caller-supplied ``numpy.random.Generator``; the controller's nominal
+model stays the paper's, and that mismatch is the point. Agents train on it; its evaluation
+episodes use seeds from 10,000 (``agents.evaluate.EVAL_SEED_OFFSET``).
 
 The **stress suite** (``"stress"``) is held out: no training, tuning, seed choice, early stopping
 or sweep objective may read it. Every episode first draws every knob like the training suite, then
@@ -37,65 +28,163 @@ onset is 0 s or a fold of the reference ((2k+1)/(2f), where the elbow folds), ti
 suite never produces. Its evaluation episodes use seeds from :data:`STRESS_SEED_OFFSET`. The law is
 not guaranteed there: it breaks the bounds in some stress episodes (fast references with high
 friction, heavy payloads), and that is reported, not hidden.
+
+**Random streams.** The first eight knobs (:data:`SHARED_KNOBS`) draw from the suite's generator
+itself, in table order, then the stress suite picks among those eight which to push: the episodes
+every result so far was scored on. A knob added after them names a stream of its own
+(``Knob.stream``): a generator seeded from the suite generator's state and that name, which draws
+without advancing the suite's generator. It draws its training value there, and in the stress
+suite is pushed there one time in four (the eight's rate: one to three of eight). Adding a knob
+therefore changes no existing knob's draw in either suite (docs/extending.md, "A scenario knob").
 """
 
 from __future__ import annotations
 
-from dataclasses import replace
-from typing import Any, Mapping
+import hashlib
+from dataclasses import dataclass, field, replace
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .params import PRESETS, ArmParams, Scenario, check_bool, check_real, is_real, preset, real_text
+from .params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
 
-__all__ = ["VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES", "STRESS_SEED_OFFSET", "UNITS",
-           "apply_variations", "check_variations", "sample_suite", "outside_training",
-           "resolve_scenario", "SUITES"]
+__all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
+           "STRESS_SEED_OFFSET", "UNITS", "apply_variations", "check_variations", "sample_suite",
+           "outside_training", "resolve_scenario", "SUITES"]
 
-VARIATIONS = ("frequency", "force", "force_onset", "friction_scale", "dead_zone_scale", "payload",
-              "initial_error", "angle_noise_std")
 
-SAFE_RANGES: dict[str, tuple[float, float]] = {
-    "frequency": (0.05, 0.5),
-    "force": (0.0, 60.0),
-    "force_onset": (0.0, 30.0),
-    "friction_scale": (0.5, 2.0),
-    "dead_zone_scale": (0.5, 2.0),
-    "payload": (0.08, 0.3),
-    "initial_error": (-0.1, 0.1),
-    "angle_noise_std": (0.0, 2e-4),
-}
+@dataclass(frozen=True)
+class Knob:
+    """One scenario knob, declared once as a row of :data:`KNOBS`.
+
+    ``target`` names the :class:`~blf_gym.params.Scenario` fields it sets, as paths:
+    ``"reference.frequency"``, ``"force.wrench[0]"`` (one entry of a tuple), ``"arm.masses[-1]"``,
+    ``"initial_error"``. With ``scale`` the value multiplies the base scenario's value of each
+    target; with ``per_joint`` it is one value per joint (a single number is given to all). The
+    ranges are (low, high) in ``unit``: ``safe`` is what :func:`check_variations` accepts,
+    ``suite`` the randomized suite's uniform range, ``stress`` where the stress suite pushes it.
+    ``physical`` is the lowest value the plant accepts (None: no limit) with ``strict=False``, and
+    whether that value itself is excluded. ``stress_value``, if given, replaces the stress suite's
+    uniform push: ``(rng, knob, frequency, duration) -> value``. ``stream``: :data:`SHARED` for the
+    first eight knobs, a name of its own for any later one (see the module docstring)."""
+
+    name: str
+    unit: str
+    meaning: str
+    target: tuple[str, ...]
+    safe: tuple[float, float]
+    suite: tuple[float, float]
+    stress: tuple[float, float]
+    physical: tuple[float | None, bool] = (None, False)
+    scale: bool = False
+    per_joint: bool = False
+    stress_value: Callable[..., float] | None = None
+    stream: str = ""
+    paths: tuple[tuple[str, str | None, int | None], ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not self.stream:
+            raise ValueError(f"Knob {self.name!r}: stream must name its random stream (a knob added after the "
+                             f"first eight draws from a stream of its own)")
+        if not (self.safe[0] <= self.suite[0] <= self.suite[1] <= self.safe[1]):
+            raise ValueError(f"Knob {self.name!r}: the suite range {self.suite} must lie inside the safe range "
+                             f"{self.safe}")
+        if self.suite[0] - self.stress[0] <= 0 and self.stress[1] - self.suite[1] <= 0:
+            raise ValueError(f"Knob {self.name!r}: the stress range {self.stress} does not extend the suite "
+                             f"range {self.suite}")
+        object.__setattr__(self, "paths", tuple(_parse_path(t) for t in self.target))
+
+    def read(self, sc: Scenario, base: Scenario) -> tuple[float, ...]:
+        """The knob's value(s) in ``sc`` (relative to ``base`` when it scales), read from its first target."""
+        v = _get(sc, self.paths[0])
+        if self.scale:
+            v = v / _get(base, self.paths[0])
+        return tuple(v) if self.per_joint else (v,)
+
+
+def _parse_path(path: str) -> tuple[str, str | None, int | None]:
+    """``"a.b[i]"`` -> ("a", "b", i); ``"a"`` -> ("a", None, None)."""
+    index = None
+    if path.endswith("]"):
+        path, _, i = path[:-1].partition("[")
+        index = int(i)
+    top, _, sub = path.partition(".")
+    return top, sub or None, index
+
+
+def _get(sc: Scenario, path: tuple[str, str | None, int | None]) -> Any:
+    top, sub, index = path
+    v = getattr(sc, top)
+    if sub is not None:
+        v = getattr(v, sub)
+    return v if index is None else v[index]
+
+
+def _onset_outside(rng: np.random.Generator, knob: Knob, frequency: float, duration: float) -> float:
+    """A pushed force onset: 0 s, or a fold of the reference outside the training window."""
+    lo, hi = knob.suite
+    folds = [(2 * k + 1) / (2 * frequency) for k in range(int(duration * frequency) + 1)]
+    folds = [t for t in folds if (t < lo or t > hi) and t < duration]
+    return float(rng.choice([0.0, *folds]))
+
+
+SHARED = "suite"
+"""``Knob.stream`` of the first eight knobs: the suite's own generator, in table order."""
+
+KNOBS: tuple[Knob, ...] = (
+    Knob("frequency", "Hz", "reference circle frequency f", ("reference.frequency",),
+         safe=(0.05, 0.5), suite=(0.1, 0.5), stress=(0.05, 1.0), physical=(0.0, True), stream=SHARED),
+    Knob("force", "N", "magnitude of f_ext along +x (paper: 40)", ("force.wrench[0]",),
+         safe=(0.0, 60.0), suite=(0.0, 60.0), stress=(0.0, 150.0), stream=SHARED),
+    Knob("force_onset", "s", "switch-on time of f_ext (paper: 20)", ("force.onset",),
+         safe=(0.0, 30.0), suite=(5.0, 25.0), stress=(0.0, 30.0), physical=(0.0, False),
+         stress_value=_onset_outside, stream=SHARED),
+    Knob("friction_scale", "", "multiplies viscous b and Coulomb c", ("friction.viscous", "friction.coulomb"),
+         safe=(0.5, 2.0), suite=(0.5, 1.5), stress=(0.25, 3.0), physical=(0.0, False), scale=True, stream=SHARED),
+    Knob("dead_zone_scale", "", "multiplies both break points tau_r, tau_l",
+         ("dead_zone.break_right", "dead_zone.break_left"),
+         safe=(0.5, 2.0), suite=(0.5, 1.5), stress=(0.25, 4.0), physical=(0.0, False), scale=True, stream=SHARED),
+    Knob("payload", "kg", "point mass m3 at the end effector (0.10)", ("arm.masses[-1]",),
+         safe=(0.08, 0.3), suite=(0.08, 0.2), stress=(0.02, 0.5), physical=(0.0, True), stream=SHARED),
+    Knob("initial_error", "rad", "e1(0) per joint (n values or one for all)", ("initial_error",),
+         safe=(-0.1, 0.1), suite=(-0.02, 0.02), stress=(-0.2, 0.2), per_joint=True, stream=SHARED),
+    Knob("angle_noise_std", "rad", "measurement noise on the angles", ("angle_noise_std",),
+         safe=(0.0, 2e-4), suite=(0.0, 1e-4), stress=(0.0, 5e-4), physical=(0.0, False), stream=SHARED),
+)
+"""The scenario knobs, one row each (:class:`Knob`). The stress ranges are measured limits of the
+proposed law at h = 0.1 ms, one knob at a time on both presets (30 s): it integrates stably up to
+1 Hz (but breaks the bounds from about 0.6 Hz), down to a 0.01 kg payload (BC is numerically
+unstable from about 0.02 kg), up to 150 N, friction x4, dead-zone x5, |e1(0)| = 0.3 rad (the
+torque saturates), and angle noise 1e-3 rad (its RMSE grows); the ranges stop short of those
+limits."""
+
+SHARED_KNOBS = 8
+"""The knobs that draw from the suite's own generator: the first eight rows, frozen (see the
+module docstring). A knob added later names a stream of its own."""
+
+if [k.stream == SHARED for k in KNOBS] != [True] * SHARED_KNOBS + [False] * (len(KNOBS) - SHARED_KNOBS):
+    raise ValueError(f"the first {SHARED_KNOBS} rows of KNOBS, and only they, draw from the shared stream")
+if len({k.name for k in KNOBS}) != len(KNOBS) or len({k.stream for k in KNOBS[SHARED_KNOBS:]}) != len(KNOBS) - SHARED_KNOBS:
+    raise ValueError("every knob of KNOBS needs a name and a stream of its own")
+
+_BY_NAME = {k.name: k for k in KNOBS}
+
+VARIATIONS = tuple(_BY_NAME)
+"""The knobs' names, in table order."""
+
+SAFE_RANGES: dict[str, tuple[float, float]] = {k.name: k.safe for k in KNOBS}
 """Documented ranges; values outside raise ValueError (pass ``strict=False`` to allow them).
 Every value must be a finite real number (a bool or a string is refused)."""
 
-SUITE_RANGES: dict[str, tuple[float, float]] = {
-    "frequency": (0.1, 0.5),
-    "force": (0.0, 60.0),
-    "force_onset": (5.0, 25.0),
-    "friction_scale": (0.5, 1.5),
-    "dead_zone_scale": (0.5, 1.5),
-    "payload": (0.08, 0.2),
-    "initial_error": (-0.02, 0.02),
-    "angle_noise_std": (0.0, 1e-4),
-}
+SUITE_RANGES: dict[str, tuple[float, float]] = {k.name: k.suite for k in KNOBS}
 """Uniform ranges of the randomized suite (a subset of :data:`SAFE_RANGES`)."""
 
-STRESS_RANGES: dict[str, tuple[float, float]] = {
-    "frequency": (0.05, 1.0),
-    "force": (0.0, 150.0),
-    "force_onset": (0.0, 30.0),
-    "friction_scale": (0.25, 3.0),
-    "dead_zone_scale": (0.25, 4.0),
-    "payload": (0.02, 0.5),
-    "initial_error": (-0.2, 0.2),
-    "angle_noise_std": (0.0, 5e-4),
-}
-"""Where the stress suite's pushed knobs are drawn: outside :data:`SUITE_RANGES`, inside these.
-Measured limits of the proposed law at h = 0.1 ms, one knob at a time on both presets (30 s):
-it integrates stably up to 1 Hz (but breaks the bounds from about 0.6 Hz), down to a 0.01 kg
-payload (BC is numerically unstable from about 0.02 kg), up to 150 N, friction x4, dead-zone x5,
-|e1(0)| = 0.3 rad (the torque saturates), and angle noise 1e-3 rad (its RMSE grows); the ranges
-stop short of those limits."""
+STRESS_RANGES: dict[str, tuple[float, float]] = {k.name: k.stress for k in KNOBS}
+"""Where the stress suite's pushed knobs are drawn: outside :data:`SUITE_RANGES`, inside these
+(see :data:`KNOBS` for how they were measured)."""
+
+UNITS: dict[str, str] = {k.name: k.unit for k in KNOBS}
+"""Unit of each knob of :data:`VARIATIONS` (empty: dimensionless)."""
 
 STRESS_SEED_OFFSET = 20_000
 """The stress suite's evaluation episodes use scenario seeds from here (the training suite's
@@ -104,18 +193,19 @@ held-out ones start at 10,000)."""
 SUITES = ("randomized", "stress")
 
 
-UNITS: dict[str, str] = {
-    "frequency": "Hz", "force": "N", "force_onset": "s", "friction_scale": "", "dead_zone_scale": "",
-    "payload": "kg", "initial_error": "rad", "angle_noise_std": "rad",
-}
-"""Unit of each knob of :data:`VARIATIONS` (empty: dimensionless)."""
+def _knob_table() -> str:
+    def rng(r: tuple[float, float], k: Knob) -> str:
+        return f"|e| <= {r[1]:g}" if k.per_joint and r[0] == -r[1] else f"[{r[0]:g}, {r[1]:g}]"
 
-# what the plant itself accepts, for strict=False: (lower end, whether it is excluded)
-_PHYSICAL: dict[str, tuple[float | None, bool]] = {
-    "frequency": (0.0, True), "force": (None, False), "force_onset": (0.0, False),
-    "friction_scale": (0.0, False), "dead_zone_scale": (0.0, False), "payload": (0.0, True),
-    "initial_error": (None, False), "angle_noise_std": (0.0, False),
-}
+    rows = [(f"``{k.name}``", k.unit or "-", rng(k.safe, k), rng(k.suite, k), k.meaning) for k in KNOBS]
+    head = ("knob", "unit", "safe range", "training suite", "meaning")
+    w = [max(len(r[i]) for r in [head, *rows]) for i in range(5)]
+    rule = "  ".join("=" * x for x in w)
+    line = lambda r: "  ".join(c.ljust(x) for c, x in zip(r, w)).rstrip()
+    return "\n".join([rule, line(head), rule, *map(line, rows), rule])
+
+
+__doc__ = __doc__.replace("{knob_table}", _knob_table())
 
 _OUTSIDE_HINT = (" (its safe range, see blf_gym.scenarios; to run outside it, build the Scenario "
                  "with blf_gym.scenarios.apply_variations(scenario, {...}, strict=False) and pass it "
@@ -124,11 +214,12 @@ _OUTSIDE_HINT = (" (its safe range, see blf_gym.scenarios; to run outside it, bu
 
 def _knob(kind: str, name: str, value: Any, strict: bool, index: int | None = None) -> float:
     label = f"{kind} {name!r}" + ("" if index is None else f"[{index}]")
+    knob = _BY_NAME[name]
     if strict:
-        lo, hi = SAFE_RANGES[name]
-        return check_real("", label, value, lo, hi, unit=UNITS[name], hint=_OUTSIDE_HINT)
-    lo, lo_open = _PHYSICAL[name]
-    return check_real("", label, value, lo, lo_open=lo_open, unit=UNITS[name])
+        lo, hi = knob.safe
+        return check_real("", label, value, lo, hi, unit=knob.unit, hint=_OUTSIDE_HINT)
+    lo, lo_open = knob.physical
+    return check_real("", label, value, lo, lo_open=lo_open, unit=knob.unit)
 
 
 def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
@@ -147,7 +238,7 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
         raise ValueError(f"unknown {kind}(s) {sorted(unknown, key=repr)}; accepted: {list(VARIATIONS)}")
     out: dict[str, Any] = {}
     for name, value in variations.items():
-        if name != "initial_error":
+        if not _BY_NAME[name].per_joint:
             out[name] = _knob(kind, name, value, strict)
             continue
         if is_real(value):
@@ -155,10 +246,11 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
             continue
         seq = isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim == 1)
         if not (seq and len(value) == n_links):
-            lo, hi = SAFE_RANGES[name] if strict else (None, None)
+            knob = _BY_NAME[name]
+            lo, hi = knob.safe if strict else (None, None)
             raise ValueError(
-                f"{kind} 'initial_error' must be one real number (the same for every joint) or a "
-                f"sequence of {n_links} (one per joint), each {real_text(lo, hi, unit='rad')}"
+                f"{kind} {name!r} must be one real number (the same for every joint) or a "
+                f"sequence of {n_links} (one per joint), each {real_text(lo, hi, unit=knob.unit)}"
                 f"{_OUTSIDE_HINT if strict else ''}, got {value!r}")
         out[name] = tuple(_knob(kind, name, v, strict, i) for i, v in enumerate(value))
     return out
@@ -167,62 +259,69 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
 def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True,
                      name: str | None = None) -> Scenario:
     """``base`` with the named knobs of :data:`VARIATIONS` applied (validated by
-    :func:`check_variations`), and renamed ``name`` if one is given. The new scenario is built and
-    checked once, whatever the number of knobs (a reset draws all of them)."""
+    :func:`check_variations`), and renamed ``name`` if one is given. Each knob sets its targets
+    (:class:`Knob`); the new scenario is built and checked once, whatever the number of knobs (a
+    reset draws all of them)."""
     v = check_variations(variations, base.arm.n_links, strict)
+    parts: dict[str, Any] = {}  # top-level field -> its new value, or a dict of its changed fields
+    for knob in KNOBS:
+        if knob.name not in v:
+            continue
+        value = v[knob.name]
+        for path in knob.paths:
+            top, sub, index = path
+            new = _get(base, path) * value if knob.scale else value
+            if sub is None:
+                cur = parts.get(top, getattr(base, top))
+            else:
+                fields = parts.setdefault(top, {})
+                cur = fields.get(sub, getattr(getattr(base, top), sub))
+            if index is not None:
+                items = list(cur)
+                items[index] = new
+                new = tuple(items)
+            if sub is None:
+                parts[top] = new
+            else:
+                parts[top][sub] = new
     changes: dict[str, Any] = {} if name is None else {"name": name}
-    if "frequency" in v:
-        changes["reference"] = replace(base.reference, frequency=v["frequency"])
-    if "force" in v or "force_onset" in v:
-        wrench = (v["force"], 0.0, 0.0) if "force" in v else base.force.wrench
-        onset = v.get("force_onset", base.force.onset)
-        changes["force"] = replace(base.force, wrench=wrench, onset=onset)
-    if "friction_scale" in v:
-        s = v["friction_scale"]
-        changes["friction"] = replace(base.friction, viscous=base.friction.viscous * s,
-                                      coulomb=base.friction.coulomb * s)
-    if "dead_zone_scale" in v:
-        s = v["dead_zone_scale"]
-        changes["dead_zone"] = replace(base.dead_zone, break_right=base.dead_zone.break_right * s,
-                                       break_left=base.dead_zone.break_left * s)
-    if "payload" in v:
-        masses = list(base.arm.masses)
-        masses[-1] = v["payload"]
-        changes["arm"] = ArmParams(lengths=base.arm.lengths, masses=tuple(masses), gravity=base.arm.gravity)
-    if "initial_error" in v:
-        changes["initial_error"] = v["initial_error"]
-    if "angle_noise_std" in v:
-        changes["angle_noise_std"] = v["angle_noise_std"]
+    for top, new in parts.items():
+        changes[top] = replace(getattr(base, top), **new) if isinstance(new, dict) else new
     return replace(base, **changes) if changes else base
 
 
-def _training_draws(rng: np.random.Generator, n_links: int) -> dict[str, Any]:
-    draws: dict[str, Any] = {}
-    for knob in VARIATIONS:
-        lo, hi = SUITE_RANGES[knob]
-        if knob == "initial_error":
-            draws[knob] = tuple(float(x) for x in rng.uniform(lo, hi, size=n_links))
-        else:
-            draws[knob] = float(rng.uniform(lo, hi))
-    return draws
+def _own_stream(rng: np.random.Generator, name: str) -> np.random.Generator:
+    """The random stream of a knob with a stream of its own: seeded from ``rng``'s current state
+    and the stream's name, without advancing ``rng``."""
+    digest = hashlib.sha256(f"{rng.bit_generator.state!r}|{name}".encode()).digest()
+    return np.random.default_rng(np.frombuffer(digest, dtype=np.uint32))
 
 
-def _outside(rng: np.random.Generator, knob: str, frequency: float, duration: float) -> float:
+def _draw(rng: np.random.Generator, knob: Knob, n_links: int) -> Any:
+    lo, hi = knob.suite
+    if knob.per_joint:
+        return tuple(float(x) for x in rng.uniform(lo, hi, size=n_links))
+    return float(rng.uniform(lo, hi))
+
+
+def _outside(rng: np.random.Generator, knob: Knob, frequency: float, duration: float) -> float:
     """A value of ``knob`` outside its training range and inside its stress range."""
-    lo, hi = SUITE_RANGES[knob]
-    slo, shi = STRESS_RANGES[knob]
-    if knob == "force_onset":
-        # 0 s, or a fold of the reference outside the training window [5, 25] s
-        folds = [(2 * k + 1) / (2 * frequency) for k in range(int(duration * frequency) + 1)]
-        folds = [t for t in folds if (t < lo or t > hi) and t < duration]
-        return float(rng.choice([0.0, *folds]))
+    if knob.stress_value is not None:
+        return knob.stress_value(rng, knob, frequency, duration)
+    lo, hi = knob.suite
+    slo, shi = knob.stress
     below, above = lo - slo, shi - hi
-    if below <= 0 and above <= 0:
-        raise ValueError(f"stress range of {knob!r} does not extend its training range")
     side_low = rng.uniform() < below / (below + above)
     if rng.uniform() < 0.25:  # a corner: the far end of the stress range
         return float(slo if side_low else shi)
     return float(rng.uniform(slo, lo) if side_low else rng.uniform(hi, shi))
+
+
+def _push(rng: np.random.Generator, knob: Knob, draws: dict[str, Any], base: Scenario) -> None:
+    if knob.per_joint:
+        draws[knob.name] = tuple(_outside(rng, knob, 0.0, 0.0) for _ in range(base.arm.n_links))
+    else:
+        draws[knob.name] = _outside(rng, knob, draws["frequency"], base.sim.duration)
 
 
 def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: str = "randomized") -> Scenario:
@@ -232,16 +331,19 @@ def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: s
     if not (isinstance(name, str) and name in SUITES):
         raise ValueError(f"unknown suite {name!r}; accepted: {list(SUITES)}")
     base = base if base is not None else preset("paper-0.1hz")
-    draws = _training_draws(rng, base.arm.n_links)
+    n = base.arm.n_links
+    own = {k.name: _own_stream(rng, k.stream) for k in KNOBS[SHARED_KNOBS:]}  # before rng draws
+    draws = {k.name: _draw(rng, k, n) for k in KNOBS[:SHARED_KNOBS]}
+    for k in KNOBS[SHARED_KNOBS:]:
+        draws[k.name] = _draw(own[k.name], k, n)
     if name == "randomized":
         return apply_variations(base, draws, name=name)
-    pushed = rng.choice(len(VARIATIONS), size=int(rng.integers(1, 4)), replace=False)
-    for k in sorted(int(i) for i in pushed):
-        knob = VARIATIONS[k]
-        if knob == "initial_error":
-            draws[knob] = tuple(_outside(rng, knob, 0.0, 0.0) for _ in range(base.arm.n_links))
-        else:
-            draws[knob] = _outside(rng, knob, draws["frequency"], base.sim.duration)
+    pushed = rng.choice(SHARED_KNOBS, size=int(rng.integers(1, 4)), replace=False)
+    for i in sorted(int(i) for i in pushed):
+        _push(rng, KNOBS[i], draws, base)
+    for k in KNOBS[SHARED_KNOBS:]:
+        if own[k.name].uniform() < 0.25:
+            _push(own[k.name], k, draws, base)
     return apply_variations(base, draws, strict=False, name=name)
 
 
@@ -249,20 +351,8 @@ def outside_training(sc: Scenario, base: Scenario | None = None) -> list[str]:
     """The knobs of ``sc`` that lie outside :data:`SUITE_RANGES` (compared with ``base``, the
     paper's 0.1 Hz preset by default, for the scaled knobs)."""
     base = base if base is not None else preset("paper-0.1hz")
-    vals = {
-        "frequency": sc.reference.frequency,
-        "force": sc.force.wrench[0],
-        "force_onset": sc.force.onset,
-        "friction_scale": sc.friction.viscous / base.friction.viscous,
-        "dead_zone_scale": sc.dead_zone.break_right / base.dead_zone.break_right,
-        "payload": sc.arm.masses[-1],
-        "angle_noise_std": sc.angle_noise_std,
-    }
-    out = [k for k, v in vals.items() if not (SUITE_RANGES[k][0] - 1e-12 <= v <= SUITE_RANGES[k][1] + 1e-12)]
-    lo, hi = SUITE_RANGES["initial_error"]
-    if any(not (lo - 1e-12 <= e <= hi + 1e-12) for e in sc.initial_error):
-        out.append("initial_error")
-    return out
+    return [k.name for k in KNOBS
+            if any(not (k.suite[0] - 1e-12 <= v <= k.suite[1] + 1e-12) for v in k.read(sc, base))]
 
 
 def resolve_scenario(spec: "str | Scenario") -> tuple[Scenario, str | None]:

@@ -153,3 +153,69 @@ def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
     got = np.array(res["0.0001"]) - np.array(res["0.0"])
     np.testing.assert_allclose(-got, want, rtol=1e-9, atol=1e-15)
     assert np.all(-got > 0)
+
+
+_KNOB_PROBE = r"""
+import json, numpy as np, blf_gym
+from blf_gym import scenarios
+from blf_gym.params import preset
+assert blf_gym.__file__.startswith(%(root)r), blf_gym.__file__
+out = {"names": list(scenarios.VARIATIONS), "doc": scenarios.__doc__, "suites": {}}
+for suite, seeds in (("randomized", range(10_000, 10_060)), ("stress", range(20_000, 20_200))):
+    rows = []
+    for s in seeds:
+        rng = np.random.default_rng(s)
+        sc = scenarios.sample_suite(rng, name=suite)
+        rows.append({"repr": repr(sc), "wrench": list(sc.force.wrench), "outside": scenarios.outside_training(sc),
+                     "state": repr(rng.bit_generator.state)})
+    out["suites"][suite] = rows
+sc = scenarios.apply_variations(preset("paper-0.1hz"), {"lateral_force": 5.0, "force": 30.0})
+out["applied"] = list(sc.force.wrench)
+try:
+    scenarios.check_variations({"lateral_force": 25.0})
+except ValueError as exc:
+    out["refused"] = str(exc)
+print(json.dumps(out))
+"""
+
+
+def test_the_scenario_knob_recipe_is_one_row_and_changes_no_existing_draw(tmp_path):
+    from dataclasses import replace as dc_replace
+
+    from blf_gym import scenarios
+
+    shutil.copytree(ROOT / "blf_gym", tmp_path / "blf_gym", ignore=shutil.ignore_patterns("__pycache__"))
+    path = tmp_path / "blf_gym" / "scenarios.py"
+    text = path.read_text()
+    end = "\n)\n\"\"\"The scenario knobs, one row each"
+    assert text.count(end) == 1  # the end of the KNOBS table, where the page says to add the row
+    path.write_text(text.replace(end, "\n" + recipe("knob").rstrip("\n") + end))
+    p = subprocess.run([sys.executable, "-c", _KNOB_PROBE % {"root": str(tmp_path)}], capture_output=True, text=True,
+                       timeout=300, env={**os.environ, "PYTHONPATH": str(tmp_path)}, cwd=tmp_path)
+    assert p.returncode == 0, p.stderr[-3000:]
+    res = json.loads(p.stdout.strip().splitlines()[-1])
+    assert res["names"] == [*scenarios.VARIATIONS, "lateral_force"]
+    assert "``lateral_force``" in res["doc"] and "f_ext along +y" in res["doc"]  # the generated table
+    np.testing.assert_array_equal(res["applied"], [30.0, 5.0, 0.0])
+    assert "variation 'lateral_force' must be a finite real number in [-20, 20] N" in res["refused"]
+    for suite, seeds in (("randomized", range(10_000, 10_060)), ("stress", range(20_000, 20_200))):
+        rows = res["suites"][suite]
+        lateral = np.array([r["wrench"][1] for r in rows])
+        pushed = 0
+        for s, row in zip(seeds, rows):
+            rng = np.random.default_rng(s)
+            before = scenarios.sample_suite(rng, name=suite)  # this package, without the knob
+            # every existing knob draws what it drew before, and the suite's generator ends where it
+            # did: with the new knob's value put back to the base's 0 N, the scenario is the same
+            wrench = (row["wrench"][0], 0.0, row["wrench"][2])
+            assert row["state"] == repr(rng.bit_generator.state)
+            assert row["repr"] == repr(dc_replace(before, force=dc_replace(before.force, wrench=tuple(row["wrench"]))))
+            assert tuple(before.force.wrench) == wrench
+            assert set(row["outside"]) - {"lateral_force"} == set(scenarios.outside_training(before))
+            pushed += "lateral_force" in row["outside"]
+        if suite == "randomized":
+            assert np.all(np.abs(lateral) <= 10.0) and np.ptp(lateral) > 10.0  # drawn, across its range
+            assert pushed == 0
+        else:
+            assert np.all(np.abs(lateral) <= 40.0)
+            assert 25 <= pushed <= 75  # pushed one time in four: 50 of 200 expected (binomial sd 6.1)
