@@ -4,7 +4,10 @@ Plain ``PlanarBLF-v0`` on the training suite under uniform random torques: episo
 about 1.3 steps (a violation), so the loop is mostly resets, each drawing a new scenario. The score
 reward's reference (the law alone on that scenario) comes lazily, with the episode, so a reset
 simulates nothing. Prints the loop's steps per second and each reset's cost, in milliseconds and
-in residual ``env.step`` calls of a long episode (the step's median, measured first).
+in residual ``env.step`` calls of a long episode (the step's median, measured first). Each reset
+is timed twice: wall time, and the calling thread's CPU time, which leaves out the moments the
+operating system gave the core to another process (on this shared 2-core machine, one reset in
+tens of thousands waits that way for several milliseconds).
 
 Run:  python benchmarks/bench_resets.py [--seconds 15] [--no-gc]
 ``--no-gc`` turns Python's cyclic garbage collector off, to tell its pauses from the env's own cost.
@@ -39,16 +42,17 @@ def main() -> None:
         _, _, te, tr, _ = env.step(rng.uniform(space.low, space.high).astype(np.float32))
         if te or tr:
             env.reset()
-    resets, steps, t0 = [], 0, time.perf_counter()
+    resets, cpu, steps, t0 = [], [], 0, time.perf_counter()
     while time.perf_counter() - t0 < args.seconds:
         _, _, te, tr, _ = env.step(rng.uniform(space.low, space.high).astype(np.float32))
         steps += 1
         if te or tr:
-            r0 = time.perf_counter()
+            r0, c0 = time.perf_counter(), time.thread_time()
             env.reset()
             resets.append(time.perf_counter() - r0)
+            cpu.append(time.thread_time() - c0)
     wall = time.perf_counter() - t0
-    r = np.array(resets)
+    r, c = np.array(resets), np.array(cpu)
     print(f"residual env.step, long episode: median {step * 1e6:.0f} us")
     print(f"plain random-action loop, default reward: {steps / wall:,.0f} steps/s, {len(r):,} resets "
           f"({steps / max(len(r), 1):.2f} steps per episode)   target >= 1,000 steps/s")
@@ -56,6 +60,8 @@ def main() -> None:
           f"p99 {np.percentile(r, 99) * 1e3:.2f} ms ({np.percentile(r, 99) / step:.1f} steps), "
           f"max {r.max() * 1e3:.2f} ms ({r.max() / step:.1f} steps)   target <= 20 steps"
           + ("   [garbage collector off]" if args.no_gc else ""))
+    print(f"reset, CPU time of the calling thread: median {np.median(c) * 1e3:.2f} ms, p99 "
+          f"{np.percentile(c, 99) * 1e3:.2f} ms, max {c.max() * 1e3:.2f} ms ({c.max() / step:.1f} steps)")
 
 
 if __name__ == "__main__":
