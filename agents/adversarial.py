@@ -24,6 +24,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym.params import PRESETS
+
 __all__ = ["sequences", "run", "main"]
 
 ENV_KWARGS = {"control_period": 0.01, "residual_scale": 8.0, "controller": "proposed"}
@@ -56,7 +58,7 @@ class _Replay:
         return np.tile(a.astype(np.float32), (obs.shape[0], 1)), None
 
 
-def run(presets: Sequence[str] = ("paper-0.1hz", "paper-0.5hz"), suite_seeds: Sequence[int] = (10, 20),
+def run(presets: Sequence[str] = tuple(PRESETS), suite_seeds: Sequence[int] = (10, 20),
         threads: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Every sequence on every group, filtered and not: per (sequence, group, filter) the share of
     certificate breaks, failures, filter breaches and episodes where an assumption failed."""

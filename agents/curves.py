@@ -20,9 +20,9 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-__all__ = ["main", "plot_curves"]
+from .evaluate import CURVE_GROUPS
 
-GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
+__all__ = ["main", "plot_curves"]
 
 
 def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | None = None,
@@ -51,17 +51,17 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
 
         first = curves[0][1]
         law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))
-    fig, axes = plt.subplots(len(GROUPS) + 1, 3, figsize=(13, 11), sharex=True)
+    fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, 3, figsize=(13, 11), sharex=True)
     for name, c in curves:
         pts = c["points"]
         steps = np.array([p["timesteps"] for p in pts]) / 1e3
-        for gi, g in enumerate(GROUPS):
+        for gi, g in enumerate(CURVE_GROUPS):
             rmse = np.array([p[g]["rmse_deg"] for p in pts])
             for j in range(3):
                 axes[gi, j].plot(steps, rmse[:, j], marker=".", label=name)
-        viol = np.array([sum(sum(p[g]["violations"]) for g in GROUPS) for p in pts])
+        viol = np.array([sum(sum(p[g]["violations"]) for g in CURVE_GROUPS) for p in pts])
         axes[-1, 0].plot(steps, viol, marker=".", label=name)
-    for gi, g in enumerate(GROUPS):
+    for gi, g in enumerate(CURVE_GROUPS):
         for j in range(3):
             ax = axes[gi, j]
             ax.axhline(law[g][j], color="k", ls="--", lw=1.2, label="proposed law")

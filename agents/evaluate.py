@@ -55,7 +55,7 @@ from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
 from . import lawcache
 from .lawcache import law_key, load_law, store_law
-from .loading import load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
+from .loading import PRETRAINED, load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
 
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes",
            "agent_group_episodes", "law_env_kwargs", "law_reference", "law_reference_groups",
@@ -68,7 +68,6 @@ def registered_controllers() -> list[str]:
 
     return [c for c in available_controllers() if c != "none"]
 
-PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
 
@@ -83,6 +82,17 @@ def suite_seed_offset(suite: str) -> int:
     if suite == "randomized":
         return EVAL_SEED_OFFSET
     raise ValueError(f"unknown suite {suite!r}; accepted values: {list(SUITES)}")
+
+
+CURVE_GROUPS = (*PRESETS, "randomized")
+"""The groups the learning curves and the sweeps score: each paper preset, and held-out episodes of
+the training suite (never the stress suite); see :func:`curve_scenarios`."""
+
+
+def curve_scenarios(suite_seeds: int, duration: float | None = None) -> list[tuple[str, list[Scenario]]]:
+    """The scenarios of :data:`CURVE_GROUPS`: the paper presets and ``suite_seeds`` held-out
+    episodes of the training suite, ``duration`` seconds each (None: the presets' 30 s)."""
+    return build_scenarios(list(PRESETS), suite_seeds, {}, duration)
 
 
 PROTOCOL_SEEDS = {"randomized": 20, "stress": 50}

@@ -112,7 +112,7 @@ def _check_metadata(meta: dict[str, Any], meta_path: Path) -> None:
     """The checks that need the metadata alone: name, mode, env_kwargs' type and keys."""
     from blf_gym.core import check_env_kwargs
 
-    from .train import MODES
+    from blf_gym import ENV_IDS
 
     name = meta.get("name", "agent")
     if not isinstance(name, str) or not name:
@@ -122,8 +122,8 @@ def _check_metadata(meta: dict[str, Any], meta_path: Path) -> None:
         raise ValueError(f"{meta_path}: algo: must be the name of a registered algorithm, e.g. 'ppo' "
                          f"(accepted: {available_algorithms()}), got {_short(meta['algo'])}")
     mode = meta["mode"]
-    if not isinstance(mode, str) or mode not in MODES:
-        raise ValueError(f"{meta_path}: mode: must be one of {list(MODES)} (plain: the agent's action is the "
+    if not isinstance(mode, str) or mode not in ENV_IDS:
+        raise ValueError(f"{meta_path}: mode: must be one of {list(ENV_IDS)} (plain: the agent's action is the "
                          f"torque; residual: it is added to a law's), got {_short(mode)}")
     kw = meta["env_kwargs"]
     if not isinstance(kw, dict):
@@ -217,7 +217,7 @@ def _check_spaces(model: Any, meta: dict[str, Any], meta_path: Path, model_path:
 
     from blf_gym.core import observation_layout
 
-    from .train import ENV_IDS
+    from blf_gym import ENV_IDS
 
     kw = meta["env_kwargs"]
     mode = meta["mode"]
@@ -353,7 +353,7 @@ def load_pretrained(name: str | Path, scenario: str | None = None, reward: str =
     if scenario is not None:
         kw["scenario"] = scenario
     kw.update(env_kwargs)
-    from .train import ENV_IDS
+    from blf_gym import ENV_IDS
 
     env_id = meta.get("env_id") or ENV_IDS[meta["mode"]]
     venv = DummyVecEnv([lambda: Monitor(gym.make(env_id, **kw))])

@@ -25,6 +25,8 @@ from typing import Sequence
 
 import numpy as np
 
+from blf_gym.params import PRESETS
+
 __all__ = ["main", "oracle_rmse"]
 
 
@@ -64,7 +66,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .evaluate import build_scenarios
 
     try:
-        groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], args.suite_seeds, {}, None)
+        groups = build_scenarios(list(PRESETS), args.suite_seeds, {}, None)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

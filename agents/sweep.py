@@ -63,9 +63,10 @@ import numpy as np
 
 from blf_gym.io import atomic_write_json, atomic_write_text
 
+from .evaluate import CURVE_GROUPS
+
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
 
-GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
 SPEC_KEYS = ("name", "base", "algo", "mode", "controller", "observer", "scenario", "timesteps", "seeds", "search",
              "num_samples", "search_seed", "overrides", "space", "scheduler", "concurrency", "time_budget_s",
              "note")
@@ -86,10 +87,10 @@ def law_levels(suite_seeds: int, duration: float | None = None, controller: str 
     """RMSE (deg, per joint) of a baseline controller on the learning-curve scenarios."""
     from blf_gym.metrics import summarize
 
-    from .evaluate import build_scenarios, controller_episodes
+    from .evaluate import controller_episodes, curve_scenarios
 
     out = {}
-    for label, scs in build_scenarios(["paper-0.1hz", "paper-0.5hz"], suite_seeds, {}, duration):
+    for label, scs in curve_scenarios(suite_seeds, duration):
         # episodes reduced as they come (summarize consumes the generator): memory does not grow with them
         rec = summarize(controller_episodes(controller, scs, threads=1), controller, "baseline", label, scs[0].sim.dt)
         out[label] = [float(v) for v in rec["rmse_deg"]]
@@ -105,7 +106,7 @@ def score_point(point: dict[str, Any], law: dict[str, list[float]], suite_seeds:
 
     row: dict[str, Any] = {"timesteps": int(point["timesteps"]), "wall_s": float(point.get("wall_s", 0.0))}
     ratios, failed, episodes = [], 0, 0
-    for g in GROUPS:
+    for g in CURVE_GROUPS:
         rec = point[g]
         rmse = np.asarray(rec["rmse_deg"], dtype=float)
         r = rmse / np.asarray(law[g], dtype=float)
@@ -115,9 +116,9 @@ def score_point(point: dict[str, Any], law: dict[str, list[float]], suite_seeds:
         episodes += n
         row[g] = {"rmse_deg": rmse.tolist(), "ratio": r.tolist(), "violations": rec["violations"],
                   "failure_rate": rec["failure_rate"], "score": score_vs_law(rmse.tolist(), law[g])}
-    row["score_vs_law"] = float(np.exp(np.mean([np.log(row[g]["score"]) for g in GROUPS])))
+    row["score_vs_law"] = float(np.exp(np.mean([np.log(row[g]["score"]) for g in CURVE_GROUPS])))
     row["worst_ratio"] = float(np.max(ratios))
-    row["violations"] = int(sum(sum(row[g]["violations"]) for g in GROUPS))
+    row["violations"] = int(sum(sum(row[g]["violations"]) for g in CURVE_GROUPS))
     row["failed_episodes"] = failed
     row["episodes"] = episodes
     row["objective"] = -failed / episodes if failed else row["score_vs_law"]
@@ -486,7 +487,7 @@ def _metrics(row: dict[str, Any], run: str, seed: int, node: str | None) -> dict
     return {"timesteps": row["timesteps"], "objective": row["objective"], "score_vs_law": row["score_vs_law"],
             "failed_episodes": row["failed_episodes"], "violations": row["violations"],
             "worst_ratio": row["worst_ratio"], "run": run, "seed": seed, "node_id": node,
-            **{f"score/{g}": row[g]["score"] for g in GROUPS}}
+            **{f"score/{g}": row[g]["score"] for g in CURVE_GROUPS}}
 
 
 def _trainable():
@@ -621,7 +622,7 @@ def collect(out: Path, spec: dict[str, Any], law: dict[str, list[float]],
             c["score_range"] = [float(min(s["score_vs_law"] for s in scored)), float(max(s["score_vs_law"] for s in scored))]
             c["failed_episodes"] = int(sum(s["failed_episodes"] for s in scored))
             c["groups"] = {g: {"score": float(np.mean([s[g]["score"] for s in scored])),
-                               "ratio": np.mean([s[g]["ratio"] for s in scored], axis=0).tolist()} for g in GROUPS}
+                               "ratio": np.mean([s[g]["ratio"] for s in scored], axis=0).tolist()} for g in CURVE_GROUPS}
             c["worst_ratio"] = float(max(s["worst_ratio"] for s in scored))
             c["timesteps"] = int(min(s["timesteps"] for s in scored))
         ranked.append(c)
@@ -662,8 +663,8 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
             lines.append(f"| {i} | {_fmt_params(c['params'])} | {c['seeds']} | - | - | - | - | - | - | - | - | 0 "
                          f"| {status} |")
             continue
-        cells = [" ".join(f"{v:.3f}" for v in c["groups"][g]["ratio"]) for g in GROUPS]
-        scores = " / ".join(f"{c['groups'][g]['score']:.3f}" for g in GROUPS)
+        cells = [" ".join(f"{v:.3f}" for v in c["groups"][g]["ratio"]) for g in CURVE_GROUPS]
+        scores = " / ".join(f"{c['groups'][g]['score']:.3f}" for g in CURVE_GROUPS)
         lo, hi = c["score_range"]
         lines.append(f"| {i} | {_fmt_params(c['params'])} | {' '.join(map(str, c['seeds']))} | {c['objective']:.4f} "
                      f"| {c['score_vs_law']:.4f} [{lo:.4f}, {hi:.4f}] | {scores} | " + " | ".join(cells)
@@ -679,7 +680,7 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
                      + (f"{s['objective']:.4f} | {s['score_vs_law']:.4f}" if s else "- | -")
                      + f" | {(t['node_id'] or '-')[:8]} |")
     lines += ["", "Law level (proposed, RMSE deg j1 j2 j3): " + "; ".join(
-        f"{g}: " + " ".join(f"{v:.4f}" for v in law[g]) for g in GROUPS),
+        f"{g}: " + " ".join(f"{v:.4f}" for v in law[g]) for g in CURVE_GROUPS),
         "", "Each run's `trial.json` holds the blf-train command that reproduces it; "
             "`blf-eval --agents runs/<run>` re-evaluates it."]
     return "\n".join(lines) + "\n"

@@ -35,13 +35,13 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json
 
 __all__ = ["main", "load_config", "validate_config", "train"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
-MODES = ("plain", "residual")
-ENV_IDS = {"plain": "PlanarBLF-v0", "residual": "PlanarBLFResidual-v0"}
+MODES = tuple(ENV_IDS)
 ENV_KEYS = ("control_period", "residual_scale", "privileged", "reward_weights", "angle_noise_std",
             "variations", "duration", "max_torque", "residual_filter", "observation_extras",
             "terminate_on_violation")
@@ -148,10 +148,10 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
 
     from blf_gym.metrics import summarize
 
-    from .evaluate import agent_episodes, build_scenarios
+    from .evaluate import agent_episodes, curve_scenarios
 
     path = out / "eval" / "curve.json"
-    groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], suite_seeds, {}, env_kwargs.get("duration"))
+    groups = curve_scenarios(suite_seeds, env_kwargs.get("duration"))
 
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:

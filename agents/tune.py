@@ -9,7 +9,7 @@ table is ``OUT/sweep.md`` / ``OUT/sweep.json``. Needs the sweep extra (``pip ins
 
 Examples::
 
-    blf-tune agents/configs/tuning/*.yaml --algo ppo --timesteps 300000 --out runs/tune --jobs 2
+    blf-tune docs/tuning/configs/*.yaml --algo ppo --timesteps 300000 --out runs/tune --jobs 2
     blf-tune runs/ppo_residual.yaml --timesteps 1000000 --seeds 0 1 2 3 4 --out runs/final5
 """
 

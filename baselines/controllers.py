@@ -53,10 +53,6 @@ class ControllerGains:
         if not (math.isfinite(self.barrier_clip) and 0.0 < self.barrier_clip < 1.0):
             raise ValueError(f"ControllerGains.barrier_clip must be in (0, 1), got {self.barrier_clip!r}")
 
-    def pack(self) -> np.ndarray:
-        """[K1 (n), K2 (n), barrier_clip], the layout of the controller's packed gains."""
-        return np.array([*self.K1, *self.K2, self.barrier_clip], dtype=np.float64)
-
 
 @dataclass(frozen=True)
 class ObserverGains:
@@ -108,5 +104,4 @@ def leso(**kwargs: Any) -> Observer:
     unknown = set(kwargs) - valid
     if unknown:
         raise ValueError(f"unknown observer gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return Observer("leso", leso_rhs, _LESO_STATES, ObserverGains(**kwargs),
-                    pairs_with=("bc", "lesobc", "proposed"))
+    return Observer("leso", leso_rhs, _LESO_STATES, ObserverGains(**kwargs))

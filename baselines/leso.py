@@ -18,7 +18,7 @@ from numba import njit
 
 from blf_gym.blocks import coriolis_times, gravity, mass_solve, model_length, nominal_length, nominal_model_into
 
-__all__ = ["leso_rhs", "LESO"]
+__all__ = ["leso_rhs", "leso_ode3", "LESO"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -70,13 +70,15 @@ class LESO:
 
     def step(self, y: np.ndarray, u: np.ndarray, dt: float) -> np.ndarray:
         """Advance by ``dt`` with measurement ``y`` and torque ``u`` held; return the new state."""
-        self.xhat = _leso_ode3(self.xhat, np.asarray(y, float), np.asarray(u, float), self.nominal,
-                               self.gains, float(dt), self._work)
+        self.xhat = leso_ode3(self.xhat, np.asarray(y, float), np.asarray(u, float), self.nominal,
+                              self.gains, float(dt), self._work)
         return self.xhat.copy()
 
 
 @njit(cache=True, error_model="numpy")
-def _leso_ode3(xhat, y, u, nominal, gains, dt, work):
+def leso_ode3(xhat, y, u, nominal, gains, dt, work):
+    """The LESO's state ``xhat`` after one ODE3 step of ``dt`` with the sampled measurement ``y`` and
+    torque ``u`` held (the sampled observer of :class:`LESO` and of the sampled policies)."""
     m = xhat.shape[0]
     n = y.shape[0]
     k0 = gains[0]

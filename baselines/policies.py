@@ -33,7 +33,7 @@ from blf_gym.reference import REFERENCE_SIGNALS
 from blf_gym.params import BoundParams
 
 from .controllers import ControllerGains, ObserverGains
-from .leso import _leso_ode3
+from .leso import leso_ode3
 
 __all__ = ["BaselinePolicy"]
 
@@ -147,8 +147,8 @@ class BaselinePolicy:
                 self._u_prev[i] = 0.0
             else:
                 # the observer integrates the last period with the measurement and torque held
-                self._xhat[i] = _leso_ode3(self._xhat[i], self._y_prev[i], self._u_prev[i],
-                                           self._nominal, self._k0, self.dt, self._work)
+                self._xhat[i] = leso_ode3(self._xhat[i], self._y_prev[i], self._u_prev[i],
+                                          self._nominal, self._k0, self.dt, self._work)
             ref[:_N] = obs[i, _QD_REF]
             ref[_N : 2 * _N] = _unsquash(obs[i, _QD_D].astype(np.float64), _SQ_VEL)
             ref[2 * _N :] = _unsquash(obs[i, _QDD_D].astype(np.float64), _SQ_ACC)

@@ -19,17 +19,21 @@ from .params import PRESETS, Scenario, preset
 from .safety import SafetyGymnasiumWrapper
 
 __version__ = "0.1.0"
-__all__ = ["PRESETS", "SafetyGymnasiumWrapper", "Scenario", "preset", "__version__"]
+__all__ = ["ENV_IDS", "PRESETS", "SafetyGymnasiumWrapper", "Scenario", "preset", "__version__"]
 
-if "PlanarBLF-v0" not in registry:
+ENV_IDS = {"plain": "PlanarBLF-v0", "residual": "PlanarBLFResidual-v0"}
+"""The registered env of each mode: in plain mode the action is the whole torque, in residual mode
+a torque added to the law's."""
+
+if ENV_IDS["plain"] not in registry:
     register(
-        id="PlanarBLF-v0",
+        id=ENV_IDS["plain"],
         entry_point="blf_gym.env:make_env",
         vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
     )
-if "PlanarBLFResidual-v0" not in registry:
+if ENV_IDS["residual"] not in registry:
     register(
-        id="PlanarBLFResidual-v0",
+        id=ENV_IDS["residual"],
         entry_point="blf_gym.env:make_residual_env",
         vector_entry_point="blf_gym.vector:make_residual_vector_env",
         kwargs={"controller": "proposed"},

@@ -66,6 +66,7 @@ import math
 import os
 import re
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -78,6 +79,7 @@ from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_fac
 from .io import cache_dir
 from .bounds import BOUND_SIGNALS
 from .params import ArmParams
+from .views import fixed
 from .reference import REFERENCE_SIGNALS
 
 __all__ = [
@@ -432,10 +434,15 @@ class Observer(_PluginBase):
     zeros elsewhere."""
     nominal: ArmParams | None = None
     pairs_with: tuple[str, ...] = ()
-    """Names of the controllers it is meant for (documentation)."""
+    """Deprecated and ignored (giving it warns): an observer serves any controller whose signals it
+    provides, which :func:`connect` checks, naming the signal, when the two are connected."""
     kind = "observer"
 
     def __post_init__(self) -> None:
+        if self.pairs_with:
+            warnings.warn(f"Observer {self.name!r}: pairs_with is deprecated and ignored; blf_gym.blocks.connect "
+                          f"checks that the observer provides every signal the controller reads",
+                          DeprecationWarning, stacklevel=3)
         self._init_common(self.name, self.params, self.nominal)
         o = self.owner
         states = _parts(o, "state", self.states)
@@ -699,8 +706,6 @@ def connect(controller: Controller, observer: Observer, n: int,
 def _load_glue(src: str, name: str, bindings: dict) -> Any:
     """Write the glue source once (content-addressed, so numba's disk cache stays valid) and import it
     with the plug-ins bound as globals."""
-    from .simulate import _fixed
-
     root = cache_dir()  # the generated glue modules; their numba cache sits beside them
     path = root / f"glue_{name}.py"
     try:
@@ -713,7 +718,7 @@ def _load_glue(src: str, name: str, bindings: dict) -> Any:
         path = None  # read-only: compile from memory, without a disk cache for the glue
     modname = f"blf_gym_glue_{name}"
     mod = type(sys)(modname)
-    mod.__dict__.update(bindings, _fixed=_fixed)
+    mod.__dict__.update(bindings, _fixed=fixed)
     mod.__file__ = str(path) if path else f"<{modname}>"
     code = compile(src, mod.__file__, "exec")
     exec(code, mod.__dict__)

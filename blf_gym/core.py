@@ -15,30 +15,14 @@ from numba import njit
 from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .controller import available_controllers, available_observers, make_controller, make_observer
-from .reward import (_R_ALIVE, _R_PENALTY, _R_REWARD, _R_TERMINATED, _R_TORQUE, _R_TRACKING, _R_TRUNCATED,
-                     _R_VIOLATED, SCORE_REWARD, RewardWeights, score_step, step_outputs)
+from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERMINATED, R_TORQUE, R_TRACKING, R_TRUNCATED,
+                     R_VIOLATED, SCORE_REWARD, STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, RewardWeights, score_step, step_outputs)
 from .params import DT_MIN, MAX_DURATION, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
 from .reference import reference_into
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
-from .simulate import (
-    ST_ASSUMPTION_FAILURES,
-    ST_DIVERGED,
-    ST_FILTER_BREACHES,
-    ST_FIRST_VIOL,
-    ST_SAT_STEPS,
-    ST_VIOL_SAMPLES,
-    ST_VIOL_STEPS,
-    SUM_E2_JOINT,
-    SUM_SAMPLES,
-    LAST_U,
-    LAST_X3,
-    LAST_X3HAT,
-    LAST_ULAW,
-    N_LAST,
-    CHANNELS,
-    ClosedLoop,
-    divergence_message,
-)
+from .simulate import CHANNELS, ClosedLoop, divergence_message
+from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
+                     ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
 __all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout", "observation_index", "SQUASH_VELOCITY",
            "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
@@ -967,7 +951,7 @@ class EnvCore:
             rec.commit(nrec)
         self.steps += 1
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
-        res = np.empty((8, N))
+        res = np.empty((len(STEP_ROWS), N))
         t_end = self.loop.time
         if self.weights.law_baseline:
             k = np.minimum(self.steps - 1, self.max_episode_steps - 1)
@@ -975,14 +959,14 @@ class EnvCore:
         else:
             base = self._no_base
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
-        rewards = res[_R_REWARD]
+        rewards = res[R_REWARD]
         if self._score_w > 0:
             if self._law_partial and (self._ep_f[:, EP_SAMPLES] > self._law_h).any():
                 self._catch_up_law()
             score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
                        self._score_w, rewards, self._score_term)
-        terminated = res[_R_TERMINATED] > 0.0
-        truncated = res[_R_TRUNCATED] > 0.0
+        terminated = res[R_TERMINATED] > 0.0
+        truncated = res[R_TRUNCATED] > 0.0
         reason = np.empty(N, dtype=object)  # filled with None
         trunc_reason = np.empty(N, dtype=object)
         if flags:
@@ -998,7 +982,7 @@ class EnvCore:
         x3 = last[:, sl[2]]
         self.last_x3[:] = x3
         info: dict[str, Any] = {
-            "cost": res[_R_VIOLATED],
+            "cost": res[R_VIOLATED],
             "violating_samples": status[:, ST_VIOL_SAMPLES],
             "u": last[:, sl[0]],
             "u_law": last[:, sl[1]],
@@ -1009,9 +993,9 @@ class EnvCore:
             "controller_outputs": {name: last[:, s] for name, s in self._out_slices},
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
-            "reward_info": {"alive": res[_R_ALIVE], "tracking": res[_R_TRACKING],
-                            "torque": res[_R_TORQUE], "score": self._score_term.copy(),
-                            "violation": res[_R_PENALTY]},
+            "reward_info": {"alive": res[R_ALIVE], "tracking": res[R_TRACKING],
+                            "torque": res[R_TORQUE], "score": self._score_term.copy(),
+                            "violation": res[R_PENALTY]},
         }
         if self._filter_slices:
             info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}

@@ -558,14 +558,6 @@ class Scenario:
         }
         return np.array([values[name] for name in REFERENCE_PACK], dtype=np.float64)
 
-    def with_changes(self, **changes: Any) -> "Scenario":
-        """A copy with top-level fields replaced (``dataclasses.replace``)."""
-        valid = {f.name for f in fields(self)}
-        unknown = set(changes) - valid
-        if unknown:
-            raise ValueError(f"Scenario has no field(s) {sorted(unknown)}; valid: {sorted(valid)}")
-        return replace(self, **changes)
-
 
 def _paper(frequency: float, name: str) -> Scenario:
     return Scenario(name=name, reference=ReferenceParams(frequency=frequency))

@@ -159,14 +159,17 @@ class RewardWeights:
                 f"violation never pays; got violation = {self.violation!r}")
 
 
-# rows of _step_outputs' result
-_R_REWARD, _R_TERMINATED, _R_TRUNCATED, _R_VIOLATED, _R_TRACKING, _R_TORQUE, _R_PENALTY, _R_ALIVE = range(8)
+STEP_ROWS = ("reward", "terminated", "truncated", "violated", "tracking", "torque", "penalty", "alive")
+"""The rows of :func:`step_outputs`' result, one per arm each: the reward, whether the episode
+terminated or was truncated, whether the step violated a bound, then the reward's terms."""
+R_REWARD, R_TERMINATED, R_TRUNCATED, R_VIOLATED, R_TRACKING, R_TORQUE, R_PENALTY, R_ALIVE = (
+    STEP_ROWS.index(r) for r in STEP_ROWS)
 
 
 @njit(cache=True, error_model="numpy")
 def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
     """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
-    the rows of ``out`` (8, N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
+    the rows of ``out`` (len(STEP_ROWS), N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
     violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
     diverged."""
     N = status.shape[0]
@@ -190,15 +193,15 @@ def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
         v = status[b, ST_VIOL_STEPS] > 0
         term = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
         pen = w_violation if term else 0.0
-        out[_R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
-        out[_R_TERMINATED, b] = 1.0 if term else 0.0
-        out[_R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
-        out[_R_VIOLATED, b] = 1.0 if v else 0.0
-        out[_R_TRACKING, b] = -w_tracking * tr
-        out[_R_TORQUE, b] = -w_torque * tq
-        out[_R_PENALTY, b] = -pen
-        out[_R_ALIVE, b] = alive
-        if term or out[_R_TRUNCATED, b] > 0.0:
+        out[R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
+        out[R_TERMINATED, b] = 1.0 if term else 0.0
+        out[R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
+        out[R_VIOLATED, b] = 1.0 if v else 0.0
+        out[R_TRACKING, b] = -w_tracking * tr
+        out[R_TORQUE, b] = -w_torque * tq
+        out[R_PENALTY, b] = -pen
+        out[R_ALIVE, b] = alive
+        if term or out[R_TRUNCATED, b] > 0.0:
             flags |= 1
         if status[b, ST_DIVERGED] != 0:
             flags |= 2

@@ -55,8 +55,11 @@ from .dynamics import (
     wrench_torque_into,
 )
 from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, plant_length
-from .reward import SUM_COLUMNS, SUM_E2_JOINT, SUM_EN2, SUM_ERR_MAX, SUM_SAMPLES, SUM_UN2, accumulate_sample
-from .status import LAST_COLUMNS, N_STATUS, STATUS_COLUMNS
+from .reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
+from .views import fixed
+from .status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
+                     ST_DIVERGED, ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_STEPS, ST_VIOL_SAMPLES,
+                     ST_VIOL_STEPS)
 from .reference import reference_angle, reference_from, reference_into
 from .uncertainty import dead_zone, force_active, friction, friction_exponent, friction_from
 
@@ -85,10 +88,6 @@ _FX, _MZ, _ONSET = _T["f_x"], _T["moment"], _T["onset"]
 _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"], _T["error_rtol"], _T["error_atol"]
 _UNSTABLE_STEPS = _T["unstable_steps"]
 
-(ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_FILTER_BREACHES,
- ST_ASSUMPTION_FAILURES) = (STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
-LAST_U, LAST_ULAW, LAST_SAT, LAST_X3, LAST_X3HAT = (LAST_COLUMNS.index(c) for c in LAST_COLUMNS)
-N_LAST = len(LAST_COLUMNS)
 
 
 @njit(cache=True, error_model="numpy")
@@ -109,39 +108,6 @@ def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
             acc += M[i * n + j] * qdd[j]
         r[i] = acc + c[i] + g[i] - u[i]
     ldl_solve_into(M, r, out, L)
-
-
-@intrinsic
-def _window(typingctx, arr, start, length):
-    """The view arr[start:start+length] of a 1-D contiguous array, built without a bounds clamp
-    or a runtime reshape, so that a compile-time ``length`` stays a constant LLVM can see.
-
-    The kernel carves all its scratch views with this: with constant shapes (n = _N is bound at
-    specialisation) LLVM unrolls every per-joint loop of the plant, law and observer, and with
-    constant offsets from one base pointer it can tell the views apart (no aliasing reloads).
-    Callers guarantee ``start + length <= len(arr)`` (lane_layout lays the views out).
-    """
-    if not (isinstance(arr, nbtypes.Array) and arr.ndim == 1 and arr.layout in ("C", "A")):
-        return None
-    sig = arr(arr, nbtypes.intp, nbtypes.intp)
-
-    def codegen(context, builder, signature, args):
-        aryty = signature.args[0]
-        src = context.make_array(aryty)(context, builder, args[0])
-        out = context.make_array(aryty)(context, builder)
-        if aryty.layout == "C":
-            stride = context.get_constant(nbtypes.intp, context.get_abi_sizeof(context.get_data_type(aryty.dtype)))
-            data = builder.gep(src.data, [args[1]])
-        else:  # a lane's view (see _lane): the same stride, the start counted in strides
-            stride = cgutils.unpack_tuple(builder, src.strides)[0]
-            raw = builder.gep(builder.bitcast(src.data, cgutils.voidptr_t), [builder.mul(args[1], stride)])
-            data = builder.bitcast(raw, src.data.type)
-        populate_array(out, data=data, shape=cgutils.pack_array(builder, [args[2]]),
-                       strides=cgutils.pack_array(builder, [stride]),
-                       itemsize=src.itemsize, meminfo=src.meminfo, parent=src.parent)
-        return impl_ret_borrowed(context, builder, aryty, out._getvalue())
-
-    return sig, codegen
 
 
 def _lane_intrinsic(lanes: int):
@@ -197,12 +163,6 @@ A batch of N arms is stepped as ceil(N / LANES) blocks; the default build is the
 for one lane."""
 _lane1 = _lane_intrinsic(1)
 _laneN = _lane_intrinsic(LANES)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _fixed(w, start, length):
-    """w[start:start+length] with a shape LLVM sees as a constant when ``length`` is one."""
-    return _window(w, start, length)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -602,12 +562,12 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         nn = n * n
                         arm = plant_b[: 2 * n + 1]
                         o = 2 * n + 1
-                        q = _fixed(x, 0, n)
-                        qd = _fixed(x, n, n)
-                        xo = _fixed(x, 2 * n, _NO)  # noqa: F821
-                        xc = _fixed(x, 2 * n + _NO, _NC)  # noqa: F821
-                        dxo = _fixed(dx, 2 * n, _NO)  # noqa: F821
-                        dxc = _fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
+                        q = fixed(x, 0, n)
+                        qd = fixed(x, n, n)
+                        xo = fixed(x, 2 * n, _NO)  # noqa: F821
+                        xc = fixed(x, 2 * n + _NO, _NC)  # noqa: F821
+                        dxo = fixed(dx, 2 * n, _NO)  # noqa: F821
+                        dxc = fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
                         trig = pw[4 * n : 6 * n]
                         c = pw[6 * n : 7 * n]
                         g = pw[7 * n : 8 * n]
@@ -623,7 +583,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                             for i in range(n):
                                 nom[nn + i] = g[i]
                         else:
-                            nominal_terms_into(_fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
+                            nominal_terms_into(fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
                         umax = plant_b[o + _UMAX]
                         _ctrl_output(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
                         if _FILTER:  # noqa: F821 (compile-time constant)
@@ -801,7 +761,8 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
 # specialisation: clone the templates with the law and observer bound, compile with a disk cache
 
 
-_KERNEL_MODULES = ("blocks", "bounds", "dynamics", "reference", "reward", "simulate", "status", "uncertainty")
+_KERNEL_MODULES = ("blocks", "bounds", "dynamics", "reference", "reward", "simulate", "status", "uncertainty",
+                   "views")
 
 
 def _source_digest(*modules: types.ModuleType) -> str:

@@ -267,3 +267,12 @@ def test_blf_reproduce_module_does_not_import_torch():
             "assert not bad, bad")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
+
+
+def test_pairs_with_is_deprecated_and_the_signals_decide_the_pairing():
+    leso = make_observer("leso")
+    with pytest.warns(DeprecationWarning, match=r"Observer 'mine': pairs_with is deprecated"):
+        mine = Observer("mine", leso.rhs, leso.states, leso.params, pairs_with=("bc",))
+    # ignored: the observer still serves a controller it was not "paired" with, since it provides
+    # every signal that controller reads
+    assert connect(_mypd(), mine, 3).observer is mine

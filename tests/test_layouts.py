@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from blf_gym import simulate
+from blf_gym import reward, simulate, status
 from blf_gym.params import PLANT_TAIL, DeadZoneParams, ForceParams, FrictionParams, SimParams, plant_length, preset
 
 
@@ -31,16 +31,16 @@ def test_the_plant_tail_is_written_where_its_declaration_says():
 
 
 def test_status_and_sums_columns_come_from_their_declarations():
-    assert simulate.N_STATUS == len(simulate.STATUS_COLUMNS)
-    assert simulate.STATUS_COLUMNS[simulate.ST_FIRST_VIOL] == "first_violating_step"
-    assert simulate.SUM_E2_JOINT == len(simulate.SUM_COLUMNS)
+    assert status.N_STATUS == len(status.STATUS_COLUMNS)
+    assert status.STATUS_COLUMNS[status.ST_FIRST_VIOL] == "first_violating_step"
+    assert reward.SUM_E2_JOINT == len(reward.SUM_COLUMNS)
     # a run's status and sums land in the named columns
     sc = preset("paper-0.5hz", duration=4.0)
     loop = simulate.ClosedLoop([sc], "lesobc", threads=1)
     rec, nrec, st = loop.advance(sc.sim.n_steps, record_samples=sc.sim.n_samples)
     e1 = rec[0, : nrec[0], 5, :]
-    assert st[0, simulate.ST_STEPS] == sc.sim.n_steps
-    assert loop.sums[0, simulate.SUM_SAMPLES] == nrec[0] == sc.sim.n_samples
-    np.testing.assert_allclose(loop.sums[0, simulate.SUM_E2_JOINT:], np.sum(e1 ** 2, axis=0), rtol=1e-12)
+    assert st[0, status.ST_STEPS] == sc.sim.n_steps
+    assert loop.sums[0, reward.SUM_SAMPLES] == nrec[0] == sc.sim.n_samples
+    np.testing.assert_allclose(loop.sums[0, reward.SUM_E2_JOINT:], np.sum(e1 ** 2, axis=0), rtol=1e-12)
     viol = (e1 >= rec[0, : nrec[0], 6, :]) | (e1 <= -rec[0, : nrec[0], 7, :])
-    assert st[0, simulate.ST_VIOL_SAMPLES] == int(viol.any(axis=1).sum()) > 0
+    assert st[0, status.ST_VIOL_SAMPLES] == int(viol.any(axis=1).sum()) > 0

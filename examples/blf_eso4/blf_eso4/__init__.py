@@ -43,5 +43,4 @@ def rhs(y, u, x1_hat, x2_hat, x3_hat, x4_hat, k0, nominal, work, d_x1_hat, d_x2_
 
 def eso4(**kwargs) -> Observer:
     """The registered factory: ``eso4(k0=...)``."""
-    return Observer("eso4", rhs, {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n", "x4_hat": "n"}, ESO4Gains(**kwargs),
-                    pairs_with=("proposed", "lesobc"))
+    return Observer("eso4", rhs, {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n", "x4_hat": "n"}, ESO4Gains(**kwargs))
