@@ -25,6 +25,7 @@ so the critic learns on the action actually applied.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import signal
@@ -362,7 +363,11 @@ def train(
                 kwargs[key] = _schedule(kwargs[key], f"{cfg_path}: hyperparams.{key}")
         if cfg.get("policy_kwargs"):
             kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
-        if cfg.get("action_noise_std") and algo in ("td3", "sac", "tqc"):
+        if cfg.get("action_noise_std"):
+            # any registered algorithm whose constructor takes SB3's action_noise (the off-policy ones)
+            if "action_noise" not in inspect.signature(cls.__init__).parameters:
+                raise ValueError(f"{cfg_path}: action_noise_std needs an algorithm that takes SB3's action_noise "
+                                 f"(an off-policy one); {algo} does not")
             kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(cfg["action_noise_std"]) * np.ones(3))
         tb = None
         try:

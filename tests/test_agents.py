@@ -60,6 +60,27 @@ def test_tiny_training_through_the_cli(tmp_path, algo, mode):
     assert any((out / "checkpoints").glob("step_*/model.zip"))
 
 
+@pytest.mark.parametrize("algo", ["ppo", "td3"])
+def test_action_noise_goes_to_any_algorithm_that_takes_it_and_is_refused_by_others(tmp_path, algo, capsys):
+    # no list of algorithm names: the constructor's own signature decides (SB3's off-policy
+    # algorithms take action_noise, PPO does not)
+    cfg = tmp_path / "noisy.yaml"
+    cfg.write_text(_tiny(tmp_path, algo).read_text() + "action_noise_std: 0.3\n")
+    out = tmp_path / "run"
+    args = ["--algo", algo, "--timesteps", "64", "--config", str(cfg), "--out", str(out), "--no-progress"]
+    if algo == "ppo":
+        assert train_main(args) == 2
+        assert ("noisy.yaml: action_noise_std needs an algorithm that takes SB3's action_noise (an off-policy "
+                "one); ppo does not") in capsys.readouterr().err
+        return
+    assert train_main(args) == 0
+    from stable_baselines3 import TD3
+
+    model = TD3.load(out / "model.zip", device="cpu")
+    noise = model.action_noise  # SB3 wraps it per env (VectorizedActionNoise) when n_envs > 1
+    np.testing.assert_allclose(getattr(noise, "base_noise", noise)._sigma, 0.3 * np.ones(3))
+
+
 def test_resume_continues_the_step_count_with_the_replay_buffer(tmp_path):
     out = tmp_path / "run"
     cfg = str(_tiny(tmp_path, "sac"))
