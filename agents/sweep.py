@@ -63,6 +63,7 @@ import numpy as np
 
 from blf_gym.io import atomic_write_json, atomic_write_text
 
+from .config import CONFIG_KEYS, RunSpec, check_config, env_keys
 from .evaluate import CURVE_GROUPS
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
@@ -142,8 +143,6 @@ def _is_num(v: Any) -> bool:
 
 
 def _check_space_key(key: str, where: str, searched: bool = True) -> None:
-    from .train import CONFIG_KEYS, ENV_KEYS
-
     if key == "config":
         return
     if searched and key in FIXED_KEYS:
@@ -153,8 +152,8 @@ def _check_space_key(key: str, where: str, searched: bool = True) -> None:
     if head not in CONFIG_KEYS:
         raise _err(where, f"unknown config key {head!r} in {key!r}; accepted: 'config', {list(CONFIG_KEYS)} "
                           "(nested ones by dotted key, e.g. hyperparams.learning_rate, env.residual_scale)")
-    if head == "env" and tail and tail.split(".")[0] not in ENV_KEYS:
-        raise _err(where, f"unknown env kwarg {tail!r} in {key!r}; accepted: {list(ENV_KEYS)}")
+    if head == "env" and tail and tail.split(".")[0] not in env_keys():
+        raise _err(where, f"unknown env kwarg {tail!r} in {key!r}; accepted: {list(env_keys())}")
     if head in ("env", "hyperparams", "policy_kwargs") and not tail:
         return
     if tail and head not in ("env", "hyperparams", "policy_kwargs"):
@@ -233,7 +232,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     Raises ValueError naming the key and the accepted values for anything wrong."""
     import yaml
 
-    from .train import ENV_IDS, MODES, load_config, validate_config
+    from .train import ENV_IDS, load_config
 
     if isinstance(path, dict):
         raw, where, folder = copy.deepcopy(path), "sweep", Path(folder or ".")
@@ -264,29 +263,11 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     name = spec["name"]
     if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_." for c in name):
         raise _err(where, f"name must be letters, digits, '-', '_' or '.', got {name!r}")
-    from .loading import available_algorithms
-
-    if spec["algo"] not in available_algorithms():
-        raise _err(where, f"unknown algo {spec['algo']!r}; accepted: {available_algorithms()}")
-    if spec["mode"] not in MODES:
-        raise _err(where, f"unknown mode {spec['mode']!r}; accepted: {list(MODES)}")
-    from blf_gym.controller import available_controllers, available_observers
-
-    if spec["controller"] is not None:
-        if spec["mode"] != "residual":
-            raise _err(where, "controller applies to mode: residual only (plain mode has no inner law)")
-        if spec["controller"] not in available_controllers():
-            raise _err(where, f"unknown controller {spec['controller']!r}; accepted: {available_controllers()}")
-    if spec["observer"] is not None and spec["observer"] not in available_observers():
-        raise _err(where, f"unknown observer {spec['observer']!r}; accepted: {available_observers()}")
-    if spec["scenario"] == "stress":
-        raise _err(where, "the stress suite is held out: no sweep trains or selects on it; use randomized")
-    if not _is_int(spec["timesteps"]) or spec["timesteps"] < 1:
-        raise _err(where, f"timesteps must be an integer >= 1, got {spec['timesteps']!r}")
-    seeds = spec["seeds"]
-    if not isinstance(seeds, list) or not seeds or not all(_is_int(s) and s >= 0 for s in seeds) \
-            or len(set(seeds)) != len(seeds):
-        raise _err(where, f"seeds must be a non-empty list of distinct integers >= 0, got {seeds!r}")
+    try:  # the same checks as blf-train's (agents.config.RunSpec)
+        RunSpec(spec["algo"], spec["mode"], spec["controller"], spec["observer"] or "leso", spec["scenario"],
+                spec["timesteps"], spec["seeds"]).checked()
+    except ValueError as exc:
+        raise _err(where, str(exc)) from None
     if spec["search"] not in SEARCHES:
         raise _err(where, f"unknown search {spec['search']!r}; accepted: {list(SEARCHES)}")
     if spec["search"] == "grid":
@@ -335,7 +316,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     if base is None:
         base = f"{spec['algo']}_{ENV_IDS[spec['mode']]}.yaml"
     if isinstance(base, dict):
-        validate_config(base, f"{where}: base")
+        check_config(base, f"{where}: base")
         spec["base"], spec["base_file"] = copy.deepcopy(base), None
     else:
         bp = _resolve_config_path(str(base), folder)
@@ -352,7 +333,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
         trial = copy.deepcopy(cfg)
         for k, v in spec["overrides"].items():
             _set(trial, k, v)
-        validate_config(trial, f"{where}: the base config with the overrides")
+        check_config(trial, f"{where}: the base config with the overrides")
         scoring.add((trial.get("curve_suite_seeds", 4), (trial.get("env") or {}).get("duration")))
     if len(scoring) > 1:
         raise _err(where, "all configs must share curve_suite_seeds and env.duration (every trial is scored "
@@ -364,7 +345,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
 def trial_config(spec: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
     """The blf-train config of one trial: the base (or the config file ``params['config']``), then
     the overrides, then the sampled values."""
-    from .train import load_config, validate_config
+    from .train import load_config
 
     cfg = load_config(params["config"]) if "config" in params else copy.deepcopy(spec["base"])
     for k, v in spec["overrides"].items():
@@ -372,7 +353,7 @@ def trial_config(spec: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]
     for k, v in params.items():
         if k != "config":
             _set(cfg, k, v)
-    validate_config(cfg, "trial config")
+    check_config(cfg, "trial config")
     return cfg
 
 

@@ -39,43 +39,35 @@ import numpy as np
 from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json
 
-__all__ = ["main", "load_config", "validate_config", "train"]
+from .config import RunSpec, TrainConfig, check_config
+
+__all__ = ["main", "load_config", "train"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 MODES = tuple(ENV_IDS)
-ENV_KEYS = ("control_period", "residual_scale", "privileged", "reward_weights", "angle_noise_std",
-            "variations", "duration", "max_torque", "residual_filter", "observation_extras",
-            "terminate_on_violation")
-CONFIG_KEYS = ("policy", "n_envs", "normalize", "env", "hyperparams", "policy_kwargs", "action_noise_std",
-               "normalize_reward", "eval_freq", "curve_suite_seeds", "checkpoint_freq", "note")
+_DEFAULTS = TrainConfig()
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
-    """Read a YAML config and reject unknown keys by name."""
+    """Read a YAML config and check it against :class:`agents.config.TrainConfig` (unknown keys and
+    wrong types refused, naming the file and the key)."""
     import yaml
 
     path = Path(path)
     if not path.is_file():
         raise ValueError(f"config not found: {path}")
-    cfg = yaml.safe_load(path.read_text()) or {}
-    validate_config(cfg, str(path))
+    try:
+        cfg = yaml.safe_load(path.read_text()) or {}
+    except yaml.YAMLError as exc:
+        raise ValueError(f"{path}: not valid YAML ({exc})") from None
+    check_config(cfg, str(path))
     return cfg
 
 
-def validate_config(cfg: Any, where: str) -> None:
-    """Check a config mapping's keys and counts; ValueError naming ``where`` and the key."""
-    if not isinstance(cfg, dict):
-        raise ValueError(f"{where}: a config is a mapping of {list(CONFIG_KEYS)}")
-    unknown = sorted(set(cfg) - set(CONFIG_KEYS))
-    if unknown:
-        raise ValueError(f"{where}: unknown config key(s) {unknown}; accepted: {list(CONFIG_KEYS)}")
-    env_unknown = sorted(set(cfg.get("env", {}) or {}) - set(ENV_KEYS))
-    if env_unknown:
-        raise ValueError(f"{where}: unknown env key(s) {env_unknown}; accepted: {list(ENV_KEYS)}")
-    for key in ("n_envs", "eval_freq", "checkpoint_freq", "curve_suite_seeds"):
-        v = cfg.get(key)
-        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ValueError(f"{where}: {key} must be an integer >= 1, got {v!r}")
+def _setting(cfg: dict[str, Any], key: str) -> Any:
+    """A config's value for ``key``, or :class:`TrainConfig`'s default when the file leaves it out."""
+    v = cfg.get(key)
+    return getattr(_DEFAULTS, key) if v is None else v
 
 
 def _stated(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -258,31 +250,12 @@ def train(
     observer = given["observer"] or "leso"
     if timesteps is None:
         timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
-    from .loading import algorithm_class, available_algorithms
+    from .loading import algorithm_class
 
-    if algo not in available_algorithms():
-        raise ValueError(f"unknown algo {algo!r}; accepted values: {available_algorithms()}")
-    if mode not in MODES:
-        raise ValueError(f"unknown mode {mode!r}; accepted values: {list(MODES)}")
-    if isinstance(timesteps, bool) or not isinstance(timesteps, int) or timesteps < 1:
-        raise ValueError(f"timesteps must be an integer >= 1, got {timesteps!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    from blf_gym.controller import available_controllers, available_observers
-    from blf_gym.scenarios import resolve_scenario
-
-    if observer not in available_observers():
-        raise ValueError(f"unknown observer {observer!r}; accepted values: {available_observers()}")
-
-    if mode == "plain" and controller is not None:
-        raise ValueError("--controller applies to --mode residual only (plain mode has no inner law)")
-    controller = controller or "proposed"
-    if mode == "residual" and controller not in available_controllers():
-        raise ValueError(f"unknown controller {controller!r}; accepted values: {available_controllers()}")
-    resolve_scenario(scenario)
-    if scenario == "stress":
-        raise ValueError("the stress suite is held out: no training, tuning, seed choice or early stopping may "
-                         "read it (blf-eval --suite stress scores on it); train on randomized or a preset")
+    run = RunSpec(algo, mode, controller, observer, scenario, timesteps, [seed]).checked()
+    controller = run.controller
     if resume and prior is not None and isinstance(prior.get("config"), dict):
         cfg = prior["config"]
         cfg_path = Path(prior.get("config_file") or "")
@@ -314,7 +287,7 @@ def train(
 
     torch.set_num_threads(1)
     cls = algorithm_class(algo)
-    n_envs = int(cfg.get("n_envs", 1))
+    n_envs = int(_setting(cfg, "n_envs"))
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs}))
     start_steps = 0
     prior_model_wall = 0.0
@@ -355,7 +328,7 @@ def train(
             return out
     if model is None:
         if normalize:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(cfg.get("normalize_reward", False)),
+            venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(_setting(cfg, "normalize_reward")),
                                 gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
         kwargs = dict(cfg.get("hyperparams") or {})
         for key in ("learning_rate", "clip_range"):
@@ -377,7 +350,7 @@ def train(
         except ImportError:
             print("blf-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
         try:
-            model = cls(cfg.get("policy", "MlpPolicy"), venv, seed=seed, device="cpu", tensorboard_log=tb,
+            model = cls(_setting(cfg, "policy"), venv, seed=seed, device="cpu", tensorboard_log=tb,
                         verbose=0, **kwargs)
         except TypeError as exc:
             raise ValueError(f"{cfg_path}: a hyperparameter is not accepted by {algo.upper()}: {exc}") from exc
@@ -436,14 +409,14 @@ def train(
         atomic_write_json(meta_path, meta)
 
     record()
-    freq = max(1, int(cfg.get("checkpoint_freq", 10_000)) // n_envs)
+    freq = max(1, int(_setting(cfg, "checkpoint_freq")) // n_envs)
     callbacks = [
         AtomicCheckpointCallback(freq, str(ckpt_dir), state=lambda: {"wall_s_to_model": round(clock.model(), 3)},
                                  on_saved=lambda _folder: record(), name_prefix="model",
                                  save_replay_buffer=True, save_vecnormalize=normalize),
-        _make_curve_callback(int(cfg.get("eval_freq", 20_000)), out, env_kwargs,
+        _make_curve_callback(int(_setting(cfg, "eval_freq")), out, env_kwargs,
                              {"name": meta["name"], "mode": mode, "env_kwargs": env_kwargs},
-                             int(cfg.get("curve_suite_seeds", 4)), clock, on_point=record),
+                             int(_setting(cfg, "curve_suite_seeds")), clock, on_point=record),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
     remaining = max(0, timesteps - start_steps)

@@ -140,6 +140,51 @@ def test_bad_training_input_is_named(tmp_path, capsys):
     assert train_main(["--algo", "sac", "--timesteps", "10", "--resume", "--out", str(tmp_path / "none")]) == 2
 
 
+@pytest.mark.parametrize("text, message", [
+    ("normalize: 'yes'\n", "normalize must be true or false, got 'yes'"),
+    ("policy: 3\n", "policy must be a string, got 3"),
+    ("hyperparams: [1, 2]\n", "hyperparams must be a mapping with string keys, got [1, 2]"),
+    ("action_noise_std: -0.1\n", "action_noise_std must be a finite number >= 0, got -0.1"),
+    ("checkpoint_freq: true\n", "checkpoint_freq must be an integer >= 1, got True"),
+    ("env:\n  num_envs: 4\n", "unknown env key(s) ['num_envs']"),
+    ("- 1\n", "a config is a mapping of"),
+])
+def test_a_config_s_wrong_type_is_refused_naming_the_file_and_the_key(tmp_path, text, message):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text)
+    with pytest.raises(ValueError) as err:
+        load_config(bad)
+    assert str(err.value).startswith(f"{bad}: ") and message in str(err.value)
+
+
+def test_a_config_s_env_keys_are_the_env_s_own_arguments():
+    import inspect
+
+    from agents.config import RUN_SET_ENV_KEYS, TrainConfig, env_keys
+    from agents.train import CONFIG_DIR
+    from blf_gym.core import EnvCore
+
+    params = set(inspect.signature(EnvCore.__init__).parameters) - {"self"}
+    assert set(env_keys()) == params - set(RUN_SET_ENV_KEYS) and set(RUN_SET_ENV_KEYS) <= params
+    assert {"control_period", "residual_filter", "reward_weights", "dt"} <= set(env_keys())
+    # every shipped config passes, and its defaults are TrainConfig's
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        load_config(path)
+    assert TrainConfig().n_envs == 1 and TrainConfig().eval_freq == 20_000
+
+
+def test_blf_train_and_a_sweep_check_a_run_the_same_way(tmp_path, capsys):
+    from agents.sweep import load_sweep
+
+    assert train_main(["--mode", "plain", "--controller", "bc", "--timesteps", "10", "--out",
+                       str(tmp_path / "x")]) == 2
+    said = capsys.readouterr().err
+    with pytest.raises(ValueError) as err:
+        load_sweep({"mode": "plain", "controller": "bc"}, tmp_path)
+    reason = "controller applies to mode: residual only (plain mode has no inner law)"
+    assert reason in said and str(err.value) == f"sweep: {reason}"
+
+
 def test_vecenv_adapter_hands_back_terminal_observation():
     venv = BLFVecEnv(3, seed=0, controller="proposed", duration=0.03)
     obs = venv.reset()

@@ -8,7 +8,7 @@ import pytest
 
 import blf_gym  # noqa: F401
 from agents.evaluate import with_filter
-from agents.train import ENV_KEYS
+from agents.config import env_keys
 
 
 def test_the_residual_env_filters_and_reports_it():
@@ -54,7 +54,7 @@ def test_in_plain_mode_it_is_a_safety_filter_around_any_policy():
 
 
 def test_the_agent_metadata_records_the_filter_and_blf_eval_can_replace_it():
-    assert "residual_filter" in ENV_KEYS  # a config's env key, recorded in metadata["env_kwargs"]
+    assert "residual_filter" in env_keys()  # a config's env key, recorded in metadata["env_kwargs"]
     meta = {"name": "ppo_residual", "mode": "residual", "env_kwargs": {"controller": "proposed"}}
     m = with_filter(meta, "barrier")
     assert m["env_kwargs"]["residual_filter"] == "barrier" and m["name"] == "ppo_residual+barrier"

@@ -1,0 +1,161 @@
+"""One typed configuration for training, shared by ``blf-train``, ``blf-sweep`` and ``blf-tune``.
+
+Two parts, each declared once here:
+
+* :class:`RunSpec`: what a run is (algorithm, mode, inner law, observer, scenario, budget, seeds),
+  given on ``blf-train``'s command line or in a sweep file's top-level keys;
+  :meth:`RunSpec.checked` validates it the same way for both.
+* :class:`TrainConfig`: how it trains, the keys of a config YAML (``agents/configs/*.yaml``).
+  :func:`check_config` refuses an unknown key or a value of the wrong type, naming the file and
+  the key. The ``env`` keys are the env's own arguments (:func:`env_keys`, read from
+  ``blf_gym.core.EnvCore``'s signature), less the ones a run sets itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping, Sequence
+
+from blf_gym import ENV_IDS
+
+__all__ = ["RunSpec", "TrainConfig", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "check_config", "env_keys"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The keys of a training config file, with their types and the defaults ``blf-train`` uses
+    for keys a file leaves out."""
+
+    policy: str = field(default="MlpPolicy", metadata={"kind": "str"})
+    """The SB3 policy class name."""
+    n_envs: int = field(default=1, metadata={"kind": "count"})
+    """Parallel arms of the training env (>= 1)."""
+    normalize: bool = field(default=False, metadata={"kind": "bool"})
+    """Observation normalization (SB3's VecNormalize), recorded in the agent's metadata."""
+    normalize_reward: bool = field(default=False, metadata={"kind": "bool"})
+    """Reward normalization too (needs ``normalize: true``)."""
+    env: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "env"})
+    """Env keyword arguments (:func:`env_keys`), checked again by the env itself."""
+    hyperparams: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "mapping"})
+    """Keyword arguments of the algorithm's constructor (``lin_<x>`` for a linear decay)."""
+    policy_kwargs: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "mapping"})
+    """The policy's keyword arguments (``net_arch``, ``log_std_init``, ...)."""
+    action_noise_std: float | None = field(default=None, metadata={"kind": "nonneg"})
+    """Gaussian exploration noise of off-policy algorithms, in action units (>= 0)."""
+    eval_freq: int = field(default=20_000, metadata={"kind": "count"})
+    """Agent steps between two learning-curve points (>= 1)."""
+    curve_suite_seeds: int = field(default=4, metadata={"kind": "count"})
+    """Held-out training-suite episodes of each learning-curve point (>= 1)."""
+    checkpoint_freq: int = field(default=10_000, metadata={"kind": "count"})
+    """Agent steps between two checkpoints (>= 1)."""
+    note: str = field(default="", metadata={"kind": "str"})
+    """Free text, recorded with the run."""
+
+
+CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(TrainConfig))
+"""The keys a training config may hold (the fields of :class:`TrainConfig`)."""
+
+RUN_SET_ENV_KEYS = ("num_envs", "scenario", "controller", "observer", "threads", "single", "record",
+                    "record_channels")
+"""EnvCore's arguments that a training run sets itself (from its command line or its sweep), never
+from a config's ``env``."""
+
+_KINDS = {f.name: f.metadata["kind"] for f in dataclasses.fields(TrainConfig)}
+
+
+def env_keys() -> tuple[str, ...]:
+    """The keys a config's ``env`` may hold: ``EnvCore``'s keyword arguments less
+    :data:`RUN_SET_ENV_KEYS`."""
+    import inspect
+
+    from blf_gym.core import EnvCore
+
+    return tuple(p for p in inspect.signature(EnvCore.__init__).parameters
+                 if p != "self" and p not in RUN_SET_ENV_KEYS)
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _type_error(where: str, key: str, want: str, v: Any) -> ValueError:
+    return ValueError(f"{where}: {key} must be {want}, got {v!r}")
+
+
+def check_config(cfg: Any, where: str) -> None:
+    """Check a config mapping against :class:`TrainConfig`: every key known, every value of its
+    type; ValueError naming ``where`` and the key otherwise. A key set to null counts as left out."""
+    if not isinstance(cfg, Mapping):
+        raise ValueError(f"{where}: a config is a mapping of {list(CONFIG_KEYS)}, got {cfg!r}")
+    unknown = sorted(set(cfg) - set(CONFIG_KEYS), key=str)
+    if unknown:
+        raise ValueError(f"{where}: unknown config key(s) {unknown}; accepted: {list(CONFIG_KEYS)}")
+    for key, v in cfg.items():
+        kind = _KINDS[key]
+        if v is None:
+            continue
+        if kind == "str" and not isinstance(v, str):
+            raise _type_error(where, key, "a string", v)
+        if kind == "bool" and not isinstance(v, bool):
+            raise _type_error(where, key, "true or false", v)
+        if kind == "count" and not (_is_int(v) and v >= 1):
+            raise _type_error(where, key, "an integer >= 1", v)
+        if kind == "nonneg" and not (isinstance(v, (int, float)) and not isinstance(v, bool)
+                                     and math.isfinite(v) and v >= 0):
+            raise _type_error(where, key, "a finite number >= 0", v)
+        if kind in ("mapping", "env"):
+            if not isinstance(v, Mapping) or not all(isinstance(k, str) for k in v):
+                raise _type_error(where, key, "a mapping with string keys", v)
+        if kind == "env":
+            allowed = env_keys()
+            bad = sorted(set(v) - set(allowed))
+            if bad:
+                raise ValueError(f"{where}: unknown env key(s) {bad}; accepted: {list(allowed)}"
+                                 + (f" ({', '.join(b for b in bad if b in RUN_SET_ENV_KEYS)} is set by the "
+                                    f"run itself, not by a config)" if set(bad) & set(RUN_SET_ENV_KEYS) else ""))
+
+
+@dataclass(frozen=True)
+class RunSpec:
+    """What a training run is. ``controller`` None means the proposed law in residual mode (plain
+    mode has no inner law, so it must stay None there)."""
+
+    algo: str
+    mode: str
+    controller: str | None
+    observer: str
+    scenario: str
+    timesteps: int
+    seeds: Sequence[int]
+
+    def checked(self) -> "RunSpec":
+        """This spec with the defaults filled in (``controller``), or ValueError naming the field
+        and its accepted values. The stress suite is refused: it is held out."""
+        from blf_gym.controller import available_controllers, available_observers
+        from blf_gym.scenarios import resolve_scenario
+
+        from .loading import available_algorithms
+
+        if self.algo not in available_algorithms():
+            raise ValueError(f"unknown algo {self.algo!r}; accepted: {available_algorithms()}")
+        if self.mode not in ENV_IDS:
+            raise ValueError(f"unknown mode {self.mode!r}; accepted: {list(ENV_IDS)}")
+        if self.mode == "plain" and self.controller is not None:
+            raise ValueError("controller applies to mode: residual only (plain mode has no inner law)")
+        controller = self.controller or ("proposed" if self.mode == "residual" else None)
+        if controller is not None and controller not in available_controllers():
+            raise ValueError(f"unknown controller {controller!r}; accepted: {available_controllers()}")
+        if self.observer not in available_observers():
+            raise ValueError(f"unknown observer {self.observer!r}; accepted: {available_observers()}")
+        if self.scenario == "stress":
+            raise ValueError("the stress suite is held out: no training, tuning, seed choice or early stopping "
+                             "may read it (blf-eval --suite stress scores on it); train on randomized or a preset")
+        resolve_scenario(self.scenario)
+        if not (_is_int(self.timesteps) and self.timesteps >= 1):
+            raise ValueError(f"timesteps must be an integer >= 1, got {self.timesteps!r}")
+        seeds = list(self.seeds) if isinstance(self.seeds, (list, tuple)) else None
+        if not seeds or not all(_is_int(s) and s >= 0 for s in seeds) or len(set(seeds)) != len(seeds):
+            raise ValueError(f"seeds must be a non-empty list of distinct integers >= 0, got {self.seeds!r}")
+        return dataclasses.replace(self, controller=controller)
