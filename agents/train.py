@@ -207,6 +207,149 @@ def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -
     return {k: (given[k] if recorded.get(k) is None else recorded[k]) for k in given}
 
 
+def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | None, resume: bool,
+            prior: dict[str, Any] | None, meta_path: Path) -> tuple[RunSpec, dict[str, Any], Path]:
+    """The run to train: its spec (options, else the resumed run's own settings, else the
+    defaults), its config (the resumed run's own, or the file) and the config's path."""
+    if resume and prior is not None:
+        given = _resume_settings(prior, given, meta_path)
+        if given["mode"] == "plain":
+            given["controller"] = None
+    seed = 0 if given["seed"] is None else given["seed"]
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    if timesteps is None:
+        timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
+    run = RunSpec(given["algo"] or "ppo", given["mode"] or "residual", given["controller"],
+                  given["observer"] or "leso", given["scenario"] or "paper-0.1hz", timesteps, [seed]).checked()
+    if resume and prior is not None and isinstance(prior.get("config"), dict):
+        cfg = prior["config"]
+        cfg_path = Path(prior.get("config_file") or "")
+        if config is not None and (json.dumps(_stated(load_config(config)), sort_keys=True)
+                                   != json.dumps(_stated(cfg), sort_keys=True)):
+            raise ValueError(f"--config {config} differs from the config this run was trained with "
+                             f"({meta_path}, 'config'); --resume keeps the run's own config")
+    else:
+        cfg_path = Path(config) if config else CONFIG_DIR / f"{run.algo}_{ENV_IDS[run.mode]}.yaml"
+        cfg = load_config(cfg_path)
+    if cfg.get("normalize_reward") and not cfg.get("normalize"):
+        raise ValueError(f"{cfg_path}: normalize_reward needs normalize: true")
+    return run, cfg, cfg_path
+
+
+def _env_kwargs(run: RunSpec, cfg: dict[str, Any]) -> dict[str, Any]:
+    """The training env's keyword arguments, as the metadata records them."""
+    env_kwargs: dict[str, Any] = {"scenario": run.scenario, **(cfg.get("env") or {})}
+    if run.mode == "residual":
+        env_kwargs["controller"] = run.controller
+    if run.observer != "leso":
+        env_kwargs["observer"] = run.observer
+    return env_kwargs
+
+
+def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
+    """The newest complete checkpoint that loads, as (model, its steps, the wall time that produced
+    it), or (None, 0, 0.0); incomplete or unreadable sets are named and skipped, and unfinished
+    partial sets removed."""
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from .checkpoints import find_checkpoints
+
+    model, start_steps, prior_model_wall = None, 0, 0.0
+    found, skipped = find_checkpoints(ckpt_dir, normalize)
+    for s in skipped:
+        print(f"blf-train: skipping incomplete checkpoint {s}", file=sys.stderr)
+    for ck in found:
+        try:
+            env = VecNormalize.load(str(ck.stats), venv) if ck.stats is not None else venv
+            model = cls.load(ck.model, env=env, device="cpu")
+            if ck.buffer is not None and hasattr(model, "replay_buffer"):
+                model.load_replay_buffer(ck.buffer)
+        except Exception as exc:  # a damaged file SB3 or pickle cannot read: try an older set
+            print(f"blf-train: skipping checkpoint at {ck.steps} steps ({ck.model.parent}): "
+                  f"cannot be loaded ({type(exc).__name__}: {exc})", file=sys.stderr)
+            model = None
+            continue
+        start_steps = ck.steps
+        prior_model_wall = float(ck.state.get("wall_s_to_model", 0.0))
+        print(f"blf-train: resuming {out} from its checkpoint at {start_steps} steps", file=sys.stderr)
+        break
+    for partial in ckpt_dir.glob(".partial_*") if ckpt_dir.is_dir() else []:
+        import shutil
+
+        shutil.rmtree(partial, ignore_errors=True)
+    return model, start_steps, prior_model_wall
+
+
+def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_path: Path, venv, out: Path):
+    """A fresh model of the registered class ``cls`` on ``venv`` (wrapped in VecNormalize when
+    the config normalizes), with the config's hyperparameters."""
+    from stable_baselines3.common.noise import NormalActionNoise
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    if cfg.get("normalize"):
+        venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(_setting(cfg, "normalize_reward")),
+                            gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
+    kwargs = dict(cfg.get("hyperparams") or {})
+    for key in ("learning_rate", "clip_range"):
+        if isinstance(kwargs.get(key), str):
+            kwargs[key] = _schedule(kwargs[key], f"{cfg_path}: hyperparams.{key}")
+    if cfg.get("policy_kwargs"):
+        kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
+    if cfg.get("action_noise_std"):
+        # any registered algorithm whose constructor takes SB3's action_noise (the off-policy ones)
+        if "action_noise" not in inspect.signature(cls.__init__).parameters:
+            raise ValueError(f"{cfg_path}: action_noise_std needs an algorithm that takes SB3's action_noise "
+                             f"(an off-policy one); {run.algo} does not")
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(cfg["action_noise_std"]) * np.ones(3))
+    tb = None
+    try:
+        import tensorboard  # noqa: F401
+
+        tb = str(out / "tb")
+    except ImportError:
+        print("blf-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
+    try:
+        return cls(_setting(cfg, "policy"), venv, seed=run.seeds[0], device="cpu", tensorboard_log=tb, verbose=0,
+                   **kwargs)
+    except TypeError as exc:
+        raise ValueError(f"{cfg_path}: a hyperparameter is not accepted by {run.algo.upper()}: {exc}") from exc
+
+
+def _segments(prior: dict[str, Any] | None, resume: bool, start_steps: int, command: str | None
+              ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The run's segments so far (one per process that trained it; a segment left "running" by a
+    process that died is closed as "killed") and this process's new one, appended."""
+    segments = list(prior.get("segments") or []) if (resume and prior) else []
+    if resume and prior and not segments and "wall_s" in prior:  # a run recorded before segments existed
+        segments = [{"start_timesteps": 0, "end_timesteps": int(prior.get("timesteps", 0)),
+                     "wall_s": float(prior["wall_s"]), "status": "completed" if prior.get("completed")
+                     else "interrupted"}]
+    for s in segments:
+        if s.get("status") == "running":
+            s["status"] = "killed"  # its process ended without closing the record
+    segment = {"start_timesteps": start_steps, "end_timesteps": start_steps, "wall_s": 0.0,
+               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running", "command": command}
+    segments.append(segment)
+    return segments, segment
+
+
+def _save_final(model, ckpt_dir: Path, out: Path, clock: _RunClock) -> None:
+    """The run's last checkpoint, then ``model.zip`` and ``vecnormalize.pkl``, each written atomically."""
+    from blf_gym.io import atomic_path
+
+    from .checkpoints import save_checkpoint
+
+    # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
+    save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
+    norm = model.get_vec_normalize_env()
+    if norm is not None:
+        with atomic_path(out / "vecnormalize.pkl") as tmp:
+            norm.save(str(tmp))
+    with atomic_path(out / "model.zip") as tmp:
+        model.save(tmp)
+
+
 def train(
     algo: str | None = None,
     mode: str | None = None,
@@ -239,82 +382,26 @@ def train(
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
     given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
              "observer": observer}
-    if resume and prior is not None:
-        given = _resume_settings(prior, given, meta_path)
-        if given["mode"] == "plain":
-            given["controller"] = None
-    algo = given["algo"] or "ppo"
-    mode = given["mode"] or "residual"
-    controller, scenario = given["controller"], given["scenario"] or "paper-0.1hz"
-    seed = 0 if given["seed"] is None else given["seed"]
-    observer = given["observer"] or "leso"
-    if timesteps is None:
-        timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
-    from .loading import algorithm_class
-
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
-    run = RunSpec(algo, mode, controller, observer, scenario, timesteps, [seed]).checked()
-    controller = run.controller
-    if resume and prior is not None and isinstance(prior.get("config"), dict):
-        cfg = prior["config"]
-        cfg_path = Path(prior.get("config_file") or "")
-        if config is not None and (json.dumps(_stated(load_config(config)), sort_keys=True)
-                                   != json.dumps(_stated(cfg), sort_keys=True)):
-            raise ValueError(f"--config {config} differs from the config this run was trained with "
-                             f"({meta_path}, 'config'); --resume keeps the run's own config")
-    else:
-        cfg_path = Path(config) if config else CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
-        cfg = load_config(cfg_path)
-    if cfg.get("normalize_reward") and not cfg.get("normalize"):
-        raise ValueError(f"{cfg_path}: normalize_reward needs normalize: true")
-    env_kwargs: dict[str, Any] = {"scenario": scenario, **(cfg.get("env") or {})}
-    if mode == "residual":
-        env_kwargs["controller"] = controller
-    if observer != "leso":
-        env_kwargs["observer"] = observer
+    run, cfg, cfg_path = _settle(given, timesteps, config, resume, prior, meta_path)
+    timesteps, seed = run.timesteps, run.seeds[0]
+    env_kwargs = _env_kwargs(run, cfg)
     normalize = bool(cfg.get("normalize"))
 
     import torch
     from stable_baselines3.common.callbacks import CallbackList
-    from stable_baselines3.common.noise import NormalActionNoise
-    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+    from stable_baselines3.common.vec_env import VecMonitor
 
-    from blf_gym.io import atomic_path
-
-    from .checkpoints import AtomicCheckpointCallback, find_checkpoints, save_checkpoint
+    from .checkpoints import AtomicCheckpointCallback
+    from .loading import algorithm_class
     from .vec_env import BLFVecEnv
 
     torch.set_num_threads(1)
-    cls = algorithm_class(algo)
+    cls = algorithm_class(run.algo)
     n_envs = int(_setting(cfg, "n_envs"))
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs}))
-    start_steps = 0
-    prior_model_wall = 0.0
-    model = None
+    model, start_steps, prior_model_wall = None, 0, 0.0
     if resume:
-        found, skipped = find_checkpoints(ckpt_dir, normalize)
-        for s in skipped:
-            print(f"blf-train: skipping incomplete checkpoint {s}", file=sys.stderr)
-        for ck in found:
-            try:
-                env = VecNormalize.load(str(ck.stats), venv) if ck.stats is not None else venv
-                model = cls.load(ck.model, env=env, device="cpu")
-                if ck.buffer is not None and hasattr(model, "replay_buffer"):
-                    model.load_replay_buffer(ck.buffer)
-            except Exception as exc:  # a damaged file SB3 or pickle cannot read: try an older set
-                print(f"blf-train: skipping checkpoint at {ck.steps} steps ({ck.model.parent}): "
-                      f"cannot be loaded ({type(exc).__name__}: {exc})", file=sys.stderr)
-                model = None
-                continue
-            start_steps = ck.steps
-            prior_model_wall = float(ck.state.get("wall_s_to_model", 0.0))
-            print(f"blf-train: resuming {out} from its checkpoint at {start_steps} steps", file=sys.stderr)
-            break
-        for partial in ckpt_dir.glob(".partial_*") if ckpt_dir.is_dir() else []:
-            import shutil
-
-            shutil.rmtree(partial, ignore_errors=True)
+        model, start_steps, prior_model_wall = _restore(cls, venv, ckpt_dir, normalize, out)
         if model is None:
             if prior is None:
                 raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
@@ -327,58 +414,22 @@ def train(
             venv.close()
             return out
     if model is None:
-        if normalize:
-            venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(_setting(cfg, "normalize_reward")),
-                                gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
-        kwargs = dict(cfg.get("hyperparams") or {})
-        for key in ("learning_rate", "clip_range"):
-            if isinstance(kwargs.get(key), str):
-                kwargs[key] = _schedule(kwargs[key], f"{cfg_path}: hyperparams.{key}")
-        if cfg.get("policy_kwargs"):
-            kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
-        if cfg.get("action_noise_std"):
-            # any registered algorithm whose constructor takes SB3's action_noise (the off-policy ones)
-            if "action_noise" not in inspect.signature(cls.__init__).parameters:
-                raise ValueError(f"{cfg_path}: action_noise_std needs an algorithm that takes SB3's action_noise "
-                                 f"(an off-policy one); {algo} does not")
-            kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(cfg["action_noise_std"]) * np.ones(3))
-        tb = None
-        try:
-            import tensorboard  # noqa: F401
-
-            tb = str(out / "tb")
-        except ImportError:
-            print("blf-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
-        try:
-            model = cls(_setting(cfg, "policy"), venv, seed=seed, device="cpu", tensorboard_log=tb,
-                        verbose=0, **kwargs)
-        except TypeError as exc:
-            raise ValueError(f"{cfg_path}: a hyperparameter is not accepted by {algo.upper()}: {exc}") from exc
+        model = _new_model(cls, run, cfg, cfg_path, venv, out)
     continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
     clock = _RunClock(prior_model_wall)
 
     # metadata.json is written now and after every checkpoint and curve point, so a killed run keeps
     # its record; each process's stretch of training is one segment
-    segments = list(prior.get("segments") or []) if (resume and prior) else []
-    if resume and prior and not segments and "wall_s" in prior:  # a run recorded before segments existed
-        segments = [{"start_timesteps": 0, "end_timesteps": int(prior.get("timesteps", 0)),
-                     "wall_s": float(prior["wall_s"]), "status": "completed" if prior.get("completed")
-                     else "interrupted"}]
-    for s in segments:
-        if s.get("status") == "running":
-            s["status"] = "killed"  # its process ended without closing the record
-    segment = {"start_timesteps": start_steps, "end_timesteps": start_steps, "wall_s": 0.0,
-               "started": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running", "command": command}
-    segments.append(segment)
+    segments, segment = _segments(prior, resume, start_steps, command)
     from blf_gym.metrics import provenance
 
     prov = provenance()
     meta: dict[str, Any] = {
         "name": name or (prior or {}).get("name") or out.name,
-        "algo": algo,
-        "mode": mode,
-        "env_id": ENV_IDS[mode],
+        "algo": run.algo,
+        "mode": run.mode,
+        "env_id": ENV_IDS[run.mode],
         "env_kwargs": dict(env_kwargs),
         "config_file": str(cfg_path),
         "config": _stated(cfg),
@@ -415,7 +466,7 @@ def train(
                                  on_saved=lambda _folder: record(), name_prefix="model",
                                  save_replay_buffer=True, save_vecnormalize=normalize),
         _make_curve_callback(int(_setting(cfg, "eval_freq")), out, env_kwargs,
-                             {"name": meta["name"], "mode": mode, "env_kwargs": env_kwargs},
+                             {"name": meta["name"], "mode": run.mode, "env_kwargs": env_kwargs},
                              int(_setting(cfg, "curve_suite_seeds")), clock, on_point=record),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
@@ -423,7 +474,7 @@ def train(
     interrupted = False
     try:
         model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not continuing,
-                    tb_log_name=algo)
+                    tb_log_name=run.algo)
     except KeyboardInterrupt:
         interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
@@ -435,14 +486,7 @@ def train(
     # final save short: it is ignored until the run is recorded
     previous = signal.signal(signal.SIGTERM, signal.SIG_IGN) if main_thread else None
     try:
-        # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
-        save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
-        norm = model.get_vec_normalize_env()
-        if norm is not None:
-            with atomic_path(out / "vecnormalize.pkl") as tmp:
-                norm.save(str(tmp))
-        with atomic_path(out / "model.zip") as tmp:
-            model.save(tmp)
+        _save_final(model, ckpt_dir, out, clock)
         record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
     finally:
         if main_thread:
@@ -494,9 +538,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     # a scheduler's SIGTERM ends the run like Ctrl-C: a final checkpoint and metadata are written
     previous = signal.signal(signal.SIGTERM, signal.default_int_handler)
     try:
-        out = train(args.algo, args.mode, args.controller, args.scenario, args.timesteps, args.seed,
-                    args.config, args.out, args.resume, not args.no_progress, args.name,
-                    command=shlex.join(["blf-train", *argv]), observer=args.observer)
+        out = train(algo=args.algo, mode=args.mode, controller=args.controller, scenario=args.scenario,
+                    timesteps=args.timesteps, seed=args.seed, config=args.config, out=args.out, resume=args.resume,
+                    progress=not args.no_progress, name=args.name, command=shlex.join(["blf-train", *argv]),
+                    observer=args.observer)
     except ValueError as exc:
         print(f"blf-train: error: {exc}", file=sys.stderr)
         return 2
