@@ -165,9 +165,12 @@ class BaselinePolicy:
                 qd = np.zeros(_N)
             nominal_model_into(y, self._nominal, self._nom, self._work)
             c = self._conn
-            c.ctrl_output(0.0, y, y, qd, self._xhat[i], self._none, ref, bnd, self._nom, self._k0, self.inner.gains,
-                          self._none, self._none, self._cout, self._none, self._none, self.max_torque, self._none,
-                          self._none, self._work)
+            # the law's output alone, through the generated glue's named signals (blf_gym.blocks;
+            # unused ones get an empty array): no observer or controller state, no filter, no derivatives
+            c.ctrl_output(t=0.0, y=y, q=y, qd=qd, xo=self._xhat[i], xc=self._none, ref=ref, bnd=bnd, nom=self._nom,
+                          og=self._k0, cg=self.inner.gains, fg=self._none, u=self._none, cout=self._cout,
+                          r=self._none, fout=self._none, umax=self.max_torque, dxo=self._none, dxc=self._none,
+                          work=self._work)
             u[i] = np.clip(self._cout[:_N], -self.max_torque, self.max_torque)
             self._y_prev[i] = y
             self._u_prev[i] = u[i]
