@@ -436,6 +436,60 @@ class _Record:
         return out
 
 
+def _record_channels(o: str, record_channels: Any) -> tuple[str, ...]:
+    """The channels a recording env keeps (None: all of :data:`CHANNELS`), 't' always among them;
+    ValueError naming the argument otherwise."""
+    if record_channels is None:
+        return CHANNELS
+    try:
+        names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
+    except TypeError:  # not a name nor a sequence of names
+        names = (record_channels,)
+    if len(set(map(repr, names))) != len(names) or any(not isinstance(c, str) or c not in CHANNELS for c in names):
+        raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
+                         f"all; 't' is always kept), got {record_channels!r}")
+    return names if "t" in names else ("t", *names)
+
+
+def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observation_extras: Any,
+                 variations: Any, reward_weights: Any, residual_filter: Any) -> None:
+    """The env's arguments that name things (a scenario, blocks, observation entries, knobs, reward
+    weights, a filter) are of a kind it accepts; ValueError naming the argument otherwise."""
+    if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
+        raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
+                         f"blf_gym.params.Scenario, got {scenario!r}")
+    if not (controller is None or isinstance(controller, (str, Controller))):
+        raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
+                         f"blf_gym.blocks.Controller, got {controller!r}")
+    if not isinstance(observer, (str, Observer)):
+        raise ValueError(f"{o} observer must be one of {available_observers()} or a "
+                         f"blf_gym.blocks.Observer, got {observer!r}")
+    optional = optional_observations()
+    if (isinstance(observation_extras, (str, bytes)) or not isinstance(observation_extras, Sequence)
+            or not all(isinstance(g, str) for g in observation_extras)):
+        raise ValueError(f"{o} observation_extras must be a sequence of names from {optional}, "
+                         f"got {observation_extras!r}")
+    bad = [g for g in observation_extras if g not in optional]
+    if bad or len(set(observation_extras)) != len(observation_extras):
+        raise ValueError(f"{o} observation_extras must name each optional entry at most once, from "
+                         f"{optional}; got {list(observation_extras)!r}")
+    if not (variations is None or isinstance(variations, Mapping)):
+        raise ValueError(f"{o} variations must be None or a mapping (dict) from names in "
+                         f"{list(VARIATIONS)} to numbers, got {variations!r}")
+    if not (reward_weights is None or isinstance(reward_weights, (RewardWeights, Mapping))):
+        raise ValueError(f"{o} reward_weights must be None, a blf_gym.core.RewardWeights or a mapping "
+                         f"(dict) of its fields {[f.name for f in fields(RewardWeights)]}, got {reward_weights!r}")
+    if isinstance(reward_weights, Mapping):
+        names = [f.name for f in fields(RewardWeights)]
+        unknown = [k for k in reward_weights if k not in names]
+        if unknown:
+            raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
+                             f"accepted: {names}")
+    if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
+        raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
+                         f"(e.g. 'barrier') or a blf_gym.blocks.ResidualFilter, got {residual_filter!r}")
+
+
 class EnvCore:
     """N arms of the PlanarBLF task stepped together by one compiled kernel call.
 
@@ -473,38 +527,11 @@ class EnvCore:
         self.num_envs = check_int(o, "num_envs", num_envs, lo=1, hi=MAX_ARMS,
                                   hint=" (blf_gym.core.MAX_ARMS; each arm keeps per-episode arrays)")
         self.record = check_bool(o, "record", record)
-        if record_channels is None:
-            self.record_channels = CHANNELS
-        else:
-            try:
-                names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
-            except TypeError:  # not a name nor a sequence of names
-                names = (record_channels,)
-            if len(set(map(repr, names))) != len(names) or any(not isinstance(c, str) or c not in CHANNELS
-                                                               for c in names):
-                raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
-                                 f"all; 't' is always kept), got {record_channels!r}")
-            self.record_channels = names if "t" in names else ("t", *names)
+        self.record_channels = _record_channels(o, record_channels)
         if self.single and self.num_envs != 1:
             raise ValueError("a single env core has num_envs == 1")
-        if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
-            raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
-                             f"blf_gym.params.Scenario, got {scenario!r}")
-        if not (controller is None or isinstance(controller, (str, Controller))):
-            raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
-                             f"blf_gym.blocks.Controller, got {controller!r}")
-        if not isinstance(observer, (str, Observer)):
-            raise ValueError(f"{o} observer must be one of {available_observers()} or a "
-                             f"blf_gym.blocks.Observer, got {observer!r}")
-        optional = optional_observations()
-        if (isinstance(observation_extras, (str, bytes)) or not isinstance(observation_extras, Sequence)
-                or not all(isinstance(g, str) for g in observation_extras)):
-            raise ValueError(f"{o} observation_extras must be a sequence of names from {optional}, "
-                             f"got {observation_extras!r}")
-        bad = [g for g in observation_extras if g not in optional]
-        if bad or len(set(observation_extras)) != len(observation_extras):
-            raise ValueError(f"{o} observation_extras must name each optional entry at most once, from "
-                             f"{optional}; got {list(observation_extras)!r}")
+        _check_kinds(o, scenario, controller, observer, observation_extras, variations, reward_weights,
+                     residual_filter)
         residual_scale = check_real(o, "residual_scale", residual_scale, lo=0.0, lo_open=True, unit="N m")
         control_period = check_real(o, "control_period", control_period, lo=0.0, lo_open=True, unit="s")
         privileged = check_bool(o, "privileged", privileged)
@@ -516,22 +543,26 @@ class EnvCore:
         max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
         dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
                         hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
-        if not (variations is None or isinstance(variations, Mapping)):
-            raise ValueError(f"{o} variations must be None or a mapping (dict) from names in "
-                             f"{list(VARIATIONS)} to numbers, got {variations!r}")
-        if not (reward_weights is None or isinstance(reward_weights, (RewardWeights, Mapping))):
-            raise ValueError(f"{o} reward_weights must be None, a blf_gym.core.RewardWeights or a mapping "
-                             f"(dict) of its fields {[f.name for f in fields(RewardWeights)]}, got {reward_weights!r}")
-        if isinstance(reward_weights, Mapping):
-            names = [f.name for f in fields(RewardWeights)]
-            unknown = [k for k in reward_weights if k not in names]
-            if unknown:
-                raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
-                                 f"accepted: {names}")
         threads = check_int(o, "threads", threads, lo=1, none_ok=True)
-        if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
-            raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
-                             f"(e.g. 'barrier') or a blf_gym.blocks.ResidualFilter, got {residual_filter!r}")
+        self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
+        self._set_period(control_period)
+        self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
+        self.observer = make_observer(observer)
+        self.residual = self.controller is not NO_CONTROLLER
+        self.residual_scale = float(residual_scale)
+        self.privileged = bool(privileged)
+        self.terminate_on_violation = bool(terminate_on_violation)
+        self._set_reward(reward_weights)
+        self.n = self.base.arm.n_links
+        self._build_loop(residual_filter, threads)
+        self._set_observation(observation_extras)
+        self._allocate()
+        self._threads = threads
+
+    def _set_scenario(self, scenario: "str | Scenario", duration: float | None, max_torque: float | None,
+                      dt: float | None, variations: Mapping[str, Any] | None, angle_noise_std: float | None) -> None:
+        """The base scenario (a preset, or a suite's base) with the simulation overrides and the
+        variations applied, and the suite to draw from (None: the base itself every episode)."""
         base, suite = resolve_scenario(scenario)
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
@@ -544,6 +575,10 @@ class EnvCore:
         self.base = apply_variations(base, self.variations) if self.variations else base
         self.suite = suite
         self.sim = self.base.sim
+
+    def _set_period(self, control_period: float) -> None:
+        """The agent's period as whole integration steps and samples, and the episode's steps."""
+        o = self.owner
         # agent period (docs/model.md section 6): a whole number of integration steps that is either a
         # whole number of 1 ms samples or divides 1 ms (down to a single step, for sampled
         # controllers such as the baseline policies)
@@ -566,12 +601,11 @@ class EnvCore:
                 f"{o} duration ({self.sim.duration} s) must be a whole number of control periods "
                 f"({self.control_period} s)")
         self.max_episode_steps = self.sim.n_steps // self.steps_per_period
-        self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
-        self.observer = make_observer(observer)
-        self.residual = self.controller is not NO_CONTROLLER
-        self.residual_scale = float(residual_scale)
-        self.privileged = bool(privileged)
-        self.terminate_on_violation = bool(terminate_on_violation)
+
+    def _set_reward(self, reward_weights: RewardWeights | Mapping[str, float] | None) -> None:
+        """The reward's weights (default: the score reward), checked against the episode's length
+        and against the memory its reference to the law would take."""
+        o = self.owner
         if reward_weights is None:
             reward_weights = SCORE_REWARD
         elif not isinstance(reward_weights, RewardWeights):
@@ -587,7 +621,11 @@ class EnvCore:
                 f"{per_arm * self.num_envs / 2 ** 30:.1f} GiB for the reward's reference to the law "
                 f"(blf_gym.core.MAX_REFERENCE_BYTES is {MAX_REFERENCE_BYTES / 2 ** 30:g} GiB); use fewer arms, "
                 "shorter episodes, or reward_weights={} (the shaped reward, which needs none)")
-        self.n = self.base.arm.n_links
+
+    def _build_loop(self, residual_filter: "str | ResidualFilter | None", threads: int | None) -> None:
+        """The compiled closed loop of the arms (the law, its filter, the observer), and where its
+        outputs sit in the loop's last-signal columns."""
+        o = self.owner
         self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
         if residual_filter is not None and not self.residual:
             # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
@@ -610,6 +648,9 @@ class EnvCore:
         # the law's outputs besides u_law (already info["u_law"]), for info["controller_outputs"]
         self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
                             for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
+
+    def _set_observation(self, observation_extras: Sequence[str]) -> None:
+        """The observation's layout, its box and where its observer and optional entries come from."""
         self.observation_extras = tuple(observation_extras)
         self._x2h, self._x3h = self._observer_offset("x2_hat"), self._observer_offset("x3_hat")
         self._extras = [self._extra_source(g) for g in self.observation_extras]
@@ -618,6 +659,10 @@ class EnvCore:
         self._base_dim = len(observation_layout(self.n, self.privileged))
         self.obs_low = np.array([r[2] for r in layout], dtype=np.float32)
         self.obs_high = np.array([r[3] for r in layout], dtype=np.float32)
+
+    def _allocate(self) -> None:
+        """The per-arm arrays of the episodes: scenarios, generators, counters, the record, the
+        episode's sums and the reward's reference to the law."""
         N, n = self.num_envs, self.n
         self.scenarios: list[Scenario] = [self.base] * N
         self.rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(N)]
@@ -662,7 +707,6 @@ class EnvCore:
         self._idle_runs: list[_LawRun] = []  # reference runs whose loops a later reset may reuse
         self._phi = np.zeros(N)
         self._score_term = np.zeros(N)
-        self._threads = threads
 
     def _observer_offset(self, name: str) -> int:
         """Where the observer's state ``name`` (n entries) sits in the loop's state rows; ValueError if
