@@ -133,7 +133,7 @@ class RunSpec:
     def checked(self) -> "RunSpec":
         """This spec with the defaults filled in (``controller``), or ValueError naming the field
         and its accepted values. The stress suite is refused: it is held out."""
-        from blf_gym.controller import available_controllers, available_observers
+        from blf_gym.registry import available_controllers, available_observers
         from blf_gym.scenarios import resolve_scenario
 
         from .loading import available_algorithms

@@ -64,7 +64,7 @@ __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes
 
 def registered_controllers() -> list[str]:
     """The inner controllers registered in the ``blf_gym.controllers`` entry-point group."""
-    from blf_gym.controller import available_controllers
+    from blf_gym.registry import available_controllers
 
     return [c for c in available_controllers() if c != "none"]
 
@@ -392,7 +392,7 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     """An agent's metadata with its env's residual filter replaced: ``name`` (e.g. "barrier"), or
     "none" for no filter. The agent's name says so (``+barrier``, ``-filter``); the env kwargs, and
     so the results' provenance, record it."""
-    from blf_gym.controller import make_controller
+    from blf_gym.registry import make_controller
 
     if name != "none" and name not in make_controller("proposed").filters:
         raise ValueError(f"--residual-filter must be 'none' or one of {sorted(make_controller('proposed').filters)}, "
@@ -649,7 +649,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         for c in args.controllers:
             if c not in registered_controllers():
                 raise ValueError(f"unknown controller {c!r}; accepted values: {registered_controllers()}")
-        from blf_gym.controller import available_observers
+        from blf_gym.registry import available_observers
 
         if args.observer not in available_observers():
             raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")

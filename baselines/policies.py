@@ -67,7 +67,7 @@ class BaselinePolicy:
     ) -> None:
         from dataclasses import fields as _fields
 
-        from blf_gym.controller import available_controllers, make_controller, make_observer
+        from blf_gym.registry import available_controllers, make_controller, make_observer
 
         names = [c for c in available_controllers() if c != "none"]
         if controller not in names:

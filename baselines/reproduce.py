@@ -45,7 +45,7 @@ PAPER_CONTROLLERS = tuple(dict.fromkeys(c for _, c in PAPER_RMSE_DEG))
 
 
 def _registered() -> list[str]:
-    from blf_gym.controller import available_controllers
+    from blf_gym.registry import available_controllers
 
     return [c for c in available_controllers() if c != "none"]
 
@@ -177,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command = shlex.join(["blf-reproduce", *argv])
     try:
         _check_names(args.preset, args.controller)
-        from blf_gym.controller import available_observers
+        from blf_gym.registry import available_observers
 
         if args.observer not in available_observers():
             raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")

@@ -14,7 +14,7 @@ from numba import njit
 
 from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
-from .controller import available_controllers, available_observers, make_controller, make_observer
+from .registry import available_controllers, available_observers, make_controller, make_observer
 from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERMINATED, R_TORQUE, R_TRACKING, R_TRUNCATED,
                      R_VIOLATED, SCORE_REWARD, STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, RewardWeights, score_step, step_outputs)
 from .params import DT_MIN, MAX_DURATION, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real

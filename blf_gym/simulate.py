@@ -42,7 +42,7 @@ from . import vmath
 from .bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
 from .blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
                      nominal_terms_into, work_length)
-from .controller import make_controller, make_observer
+from .registry import make_controller, make_observer
 from .dynamics import (
     WORK_PER_LINK,
     abs_trig_into,

@@ -25,7 +25,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import blf_gym  # noqa: F401  (registers the ids)
-from blf_gym.controller import available_controllers
+from blf_gym.registry import available_controllers
 from blf_gym.core import RewardWeights
 from blf_gym.env import PlanarBLFEnv
 from blf_gym.params import DT_MIN, SimParams

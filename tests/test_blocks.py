@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from blf_gym.blocks import (PLANT, coriolis_times, gravity, mass_solve, mass_times, model_length, nominal_length,
                             nominal_model_into, size_of, units, work_length)
 from blf_gym.bounds import BOUND_SIGNALS, KA, KB
-from blf_gym.controller import available_controllers, available_observers, make_controller, make_observer
+from blf_gym.registry import available_controllers, available_observers, make_controller, make_observer
 from blf_gym.dynamics import coriolis_matrix, gravity as gravity_np, mass_matrix
 from blf_gym.params import ArmParams, preset
 from blf_gym.reference import joint_reference

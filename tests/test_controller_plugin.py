@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from blf_gym.blocks import Controller, Observer, connect, gravity
-from blf_gym.controller import available_controllers, make_controller, make_observer
+from blf_gym.registry import available_controllers, make_controller, make_observer
 from blf_gym.params import ArmParams, preset
 from blf_gym.simulate import ClosedLoop, simulate
 
@@ -252,7 +252,7 @@ def test_code_numba_cannot_compile_is_reported_against_the_plug_in():
 
 
 def test_blf_gym_does_not_import_controllers_or_learning_libraries():
-    code = ("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.controller, sys; "
+    code = ("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.registry, sys; "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
             "('baselines', 'agents', 'torch', 'stable_baselines3')); "
             "assert not bad, bad")
@@ -276,3 +276,13 @@ def test_pairs_with_is_deprecated_and_the_signals_decide_the_pairing():
     # ignored: the observer still serves a controller it was not "paired" with, since it provides
     # every signal that controller reads
     assert connect(_mypd(), mine, 3).observer is mine
+
+
+def test_the_old_registry_name_still_works_and_says_where_it_moved():
+    code = ("import warnings; warnings.simplefilter('error'); "
+            "import blf_gym.controller")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0 and "blf_gym.controller is deprecated; import from blf_gym.registry" in p.stderr
+    code = ("import warnings; warnings.simplefilter('ignore'); import blf_gym.controller as c, blf_gym.registry as r; "
+            "assert c.make_controller is r.make_controller and set(c.__all__) == set(r.__all__)")
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120).returncode == 0

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.controller import available_controllers, available_observers
+from blf_gym.registry import available_controllers, available_observers
 from blf_gym.params import preset
 from blf_gym.simulate import simulate
 

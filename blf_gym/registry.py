@@ -1,0 +1,99 @@
+"""Where controllers and observers come from: the registry over the entry-point groups.
+
+``blf_gym`` never imports a controller. Plug-ins are :class:`~blf_gym.blocks.Controller` and
+:class:`~blf_gym.blocks.Observer` blocks (the protocol is in :mod:`blf_gym.blocks` and
+docs/extending.md). Named ones are found through the entry-point groups ``blf_gym.controllers``
+and ``blf_gym.observers``: each entry point is a factory whose keyword arguments override the
+plug-in's parameters. The ``baselines`` package registers ``bc``, ``lesobc``, ``proposed`` and
+``leso``, so the dependency points from ``baselines`` to ``blf_gym`` only; an installed package of
+yours registers its own the same way, and every command and ``gym.make`` then accept its names.
+``none`` (no inner law, plain RL) is built in.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+from typing import Any
+
+from .blocks import (
+    NO_CONTROLLER,
+    Controller,
+    Observer,
+    model_length,
+    nominal_length,
+    nominal_model_into,
+    work_length,
+)
+
+__all__ = [
+    "Controller",
+    "Observer",
+    "NO_CONTROLLER",
+    "model_length",
+    "nominal_length",
+    "nominal_model_into",
+    "work_length",
+    "make_controller",
+    "make_observer",
+    "available_controllers",
+    "available_observers",
+]
+
+
+def _group(name: str) -> dict[str, Any]:
+    return {ep.name: ep for ep in entry_points(group=name)}
+
+
+def available_controllers() -> list[str]:
+    """Names accepted by :func:`make_controller` (``none`` plus the registered plug-ins)."""
+    return ["none", *sorted(_group("blf_gym.controllers"))]
+
+
+def available_observers() -> list[str]:
+    """Names accepted by :func:`make_observer` (the registered plug-ins)."""
+    return sorted(_group("blf_gym.observers"))
+
+
+def _load(group: str, kind: str, cls: type, spec: Any, kwargs: dict[str, Any]) -> Any:
+    eps = _group(group)
+    if spec not in eps:
+        names = available_controllers() if cls is Controller else available_observers()
+        raise ValueError(
+            f"unknown {kind} {spec!r}; accepted values: {names} (or a blf_gym.blocks.{cls.__name__} object). "
+            "If the paper's are missing, install the project (pip install -e .) so its entry points are registered."
+        )
+    try:
+        factory = eps[spec].load()
+    except Exception as exc:  # noqa: BLE001 (a broken plug-in package, reported by name)
+        raise ValueError(f"{kind} {spec!r}: its entry point {eps[spec].value} failed to load: "
+                         f"{type(exc).__name__}: {exc}") from exc
+    obj = factory(**kwargs)
+    if not isinstance(obj, cls):
+        raise ValueError(f"entry point {spec!r} of {group} returned {type(obj).__name__}, not a "
+                         f"blf_gym.blocks.{cls.__name__}")
+    return obj
+
+
+def make_controller(spec: "str | Controller", **kwargs: Any) -> Controller:
+    """A :class:`~blf_gym.blocks.Controller` from a registered name (``bc``, ``lesobc``,
+    ``proposed``, ``none``, or an installed plug-in's) or an existing object. ``kwargs`` go to the
+    plug-in's factory (e.g. gains)."""
+    if isinstance(spec, Controller):
+        if kwargs:
+            raise ValueError("keyword arguments only apply when the controller is given by name")
+        return spec
+    if spec == "none":
+        if kwargs:
+            raise ValueError("controller 'none' takes no parameters")
+        return NO_CONTROLLER
+    return _load("blf_gym.controllers", "controller", Controller, spec, kwargs)
+
+
+def make_observer(spec: "str | Observer" = "leso", **kwargs: Any) -> Observer:
+    """An :class:`~blf_gym.blocks.Observer` from a registered name (``leso``, or an installed
+    plug-in's) or an existing object."""
+    if isinstance(spec, Observer):
+        if kwargs:
+            raise ValueError("keyword arguments only apply when the observer is given by name")
+        return spec
+    return _load("blf_gym.observers", "observer", Observer, spec, kwargs)
