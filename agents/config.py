@@ -16,11 +16,25 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from blf_gym import ENV_IDS
 
-__all__ = ["RunSpec", "TrainConfig", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "check_config", "env_keys"]
+__all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "check_config", "env_keys",
+           "shipped_config"]
+
+CONFIG_DIR = Path(__file__).resolve().parent / "configs"
+"""The shipped training configs, ``<algo>_<env id>.yaml``."""
+
+
+def shipped_config(algo: str, mode: str) -> Path | None:
+    """The config ``blf-train`` and a sweep use for ``algo`` in ``mode`` when none is given:
+    ``CONFIG_DIR/<algo>_<env id>.yaml``, or None when none ships (an algorithm registered by another
+    package), in which case :class:`TrainConfig`'s defaults and the algorithm's own
+    hyperparameters apply."""
+    path = CONFIG_DIR / f"{algo}_{ENV_IDS[mode]}.yaml"
+    return path if path.is_file() else None
 
 
 @dataclass(frozen=True)

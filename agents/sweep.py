@@ -63,7 +63,7 @@ import numpy as np
 
 from blf_gym.io import atomic_write_json, atomic_write_text
 
-from .config import CONFIG_KEYS, RunSpec, check_config, env_keys
+from .config import CONFIG_KEYS, RunSpec, check_config, env_keys, shipped_config
 from .evaluate import CURVE_GROUPS
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
@@ -217,7 +217,7 @@ def _set(cfg: dict[str, Any], key: str, value: Any) -> None:
 
 
 def _resolve_config_path(value: str, folder: Path) -> Path:
-    from .train import CONFIG_DIR
+    from .config import CONFIG_DIR
 
     p = Path(value)
     for cand in (p if p.is_absolute() else folder / p, CONFIG_DIR / p):
@@ -232,7 +232,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     Raises ValueError naming the key and the accepted values for anything wrong."""
     import yaml
 
-    from .train import ENV_IDS, load_config
+    from .train import load_config
 
     if isinstance(path, dict):
         raw, where, folder = copy.deepcopy(path), "sweep", Path(folder or ".")
@@ -313,8 +313,9 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
 
     # the base config, and every config file a grid names
     base = raw.get("base")
-    if base is None:
-        base = f"{spec['algo']}_{ENV_IDS[spec['mode']]}.yaml"
+    if base is None:  # the shipped config, or TrainConfig's defaults for an algorithm that ships none
+        shipped = shipped_config(spec["algo"], spec["mode"])
+        base = {} if shipped is None else str(shipped)
     if isinstance(base, dict):
         check_config(base, f"{where}: base")
         spec["base"], spec["base_file"] = copy.deepcopy(base), None

@@ -39,11 +39,10 @@ import numpy as np
 from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json
 
-from .config import RunSpec, TrainConfig, check_config
+from .config import RunSpec, TrainConfig, check_config, shipped_config
 
 __all__ = ["main", "load_config", "train"]
 
-CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 MODES = tuple(ENV_IDS)
 _DEFAULTS = TrainConfig()
 
@@ -208,9 +207,10 @@ def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -
 
 
 def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | None, resume: bool,
-            prior: dict[str, Any] | None, meta_path: Path) -> tuple[RunSpec, dict[str, Any], Path]:
+            prior: dict[str, Any] | None, meta_path: Path) -> tuple[RunSpec, dict[str, Any], str]:
     """The run to train: its spec (options, else the resumed run's own settings, else the
-    defaults), its config (the resumed run's own, or the file) and the config's path."""
+    defaults), its config (the resumed run's own, or the file) and the config file's path ("" when
+    none ships for the algorithm: TrainConfig's defaults)."""
     if resume and prior is not None:
         given = _resume_settings(prior, given, meta_path)
         if given["mode"] == "plain":
@@ -224,17 +224,28 @@ def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | N
                   given["observer"] or "leso", given["scenario"] or "paper-0.1hz", timesteps, [seed]).checked()
     if resume and prior is not None and isinstance(prior.get("config"), dict):
         cfg = prior["config"]
-        cfg_path = Path(prior.get("config_file") or "")
+        cfg_file = str(prior.get("config_file") or "")
         if config is not None and (json.dumps(_stated(load_config(config)), sort_keys=True)
                                    != json.dumps(_stated(cfg), sort_keys=True)):
             raise ValueError(f"--config {config} differs from the config this run was trained with "
                              f"({meta_path}, 'config'); --resume keeps the run's own config")
     else:
-        cfg_path = Path(config) if config else CONFIG_DIR / f"{run.algo}_{ENV_IDS[run.mode]}.yaml"
-        cfg = load_config(cfg_path)
+        path = Path(config) if config else shipped_config(run.algo, run.mode)
+        if path is None:
+            cfg, cfg_file = {}, ""
+            print(f"blf-train: no config ships for {run.algo} in {run.mode} mode; training with TrainConfig's "
+                  f"defaults (agents/config.py) and {run.algo}'s own hyperparameters (--config FILE sets them)",
+                  file=sys.stderr)
+        else:
+            cfg, cfg_file = load_config(path), str(path)
     if cfg.get("normalize_reward") and not cfg.get("normalize"):
-        raise ValueError(f"{cfg_path}: normalize_reward needs normalize: true")
-    return run, cfg, cfg_path
+        raise ValueError(f"{_where(cfg_file)}: normalize_reward needs normalize: true")
+    return run, cfg, cfg_file
+
+
+def _where(cfg_file: str) -> str:
+    """How an error names the config: its file, or TrainConfig's defaults."""
+    return cfg_file or "the config (TrainConfig's defaults, agents/config.py)"
 
 
 def _env_kwargs(run: RunSpec, cfg: dict[str, Any]) -> dict[str, Any]:
@@ -281,7 +292,7 @@ def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
     return model, start_steps, prior_model_wall
 
 
-def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_path: Path, venv, out: Path):
+def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_file: str, venv, out: Path):
     """A fresh model of the registered class ``cls`` on ``venv`` (wrapped in VecNormalize when
     the config normalizes), with the config's hyperparameters."""
     from stable_baselines3.common.noise import NormalActionNoise
@@ -293,13 +304,13 @@ def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_path: Path, venv, out
     kwargs = dict(cfg.get("hyperparams") or {})
     for key in ("learning_rate", "clip_range"):
         if isinstance(kwargs.get(key), str):
-            kwargs[key] = _schedule(kwargs[key], f"{cfg_path}: hyperparams.{key}")
+            kwargs[key] = _schedule(kwargs[key], f"{_where(cfg_file)}: hyperparams.{key}")
     if cfg.get("policy_kwargs"):
         kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
     if cfg.get("action_noise_std"):
         # any registered algorithm whose constructor takes SB3's action_noise (the off-policy ones)
         if "action_noise" not in inspect.signature(cls.__init__).parameters:
-            raise ValueError(f"{cfg_path}: action_noise_std needs an algorithm that takes SB3's action_noise "
+            raise ValueError(f"{_where(cfg_file)}: action_noise_std needs an algorithm that takes SB3's action_noise "
                              f"(an off-policy one); {run.algo} does not")
         kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(cfg["action_noise_std"]) * np.ones(3))
     tb = None
@@ -313,7 +324,7 @@ def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_path: Path, venv, out
         return cls(_setting(cfg, "policy"), venv, seed=run.seeds[0], device="cpu", tensorboard_log=tb, verbose=0,
                    **kwargs)
     except TypeError as exc:
-        raise ValueError(f"{cfg_path}: a hyperparameter is not accepted by {run.algo.upper()}: {exc}") from exc
+        raise ValueError(f"{_where(cfg_file)}: a hyperparameter is not accepted by {run.algo.upper()}: {exc}") from exc
 
 
 def _segments(prior: dict[str, Any] | None, resume: bool, start_steps: int, command: str | None
@@ -382,7 +393,7 @@ def train(
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
     given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
              "observer": observer}
-    run, cfg, cfg_path = _settle(given, timesteps, config, resume, prior, meta_path)
+    run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path)
     timesteps, seed = run.timesteps, run.seeds[0]
     env_kwargs = _env_kwargs(run, cfg)
     normalize = bool(cfg.get("normalize"))
@@ -414,7 +425,7 @@ def train(
             venv.close()
             return out
     if model is None:
-        model = _new_model(cls, run, cfg, cfg_path, venv, out)
+        model = _new_model(cls, run, cfg, cfg_file, venv, out)
     continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
     clock = _RunClock(prior_model_wall)
@@ -431,7 +442,7 @@ def train(
         "mode": run.mode,
         "env_id": ENV_IDS[run.mode],
         "env_kwargs": dict(env_kwargs),
-        "config_file": str(cfg_path),
+        "config_file": cfg_file,
         "config": _stated(cfg),
         "seed": seed,
         "timesteps": start_steps,

@@ -161,7 +161,7 @@ def test_a_config_s_env_keys_are_the_env_s_own_arguments():
     import inspect
 
     from agents.config import RUN_SET_ENV_KEYS, TrainConfig, env_keys
-    from agents.train import CONFIG_DIR
+    from agents.config import CONFIG_DIR
     from blf_gym.core import EnvCore
 
     params = set(inspect.signature(EnvCore.__init__).parameters) - {"self"}
@@ -171,6 +171,30 @@ def test_a_config_s_env_keys_are_the_env_s_own_arguments():
     for path in sorted(CONFIG_DIR.glob("*.yaml")):
         load_config(path)
     assert TrainConfig().n_envs == 1 and TrainConfig().eval_freq == 20_000
+
+
+def test_an_algorithm_registered_without_configs_trains_by_name_on_the_typed_defaults(tmp_path, capsys,
+                                                                                       monkeypatch):
+    # a package that registers an algorithm in blf_gym.algorithms ships no config here: blf-train
+    # and a sweep take TrainConfig's defaults (stood in for by SB3's A2C, which ships no config)
+    import agents.loading as loading
+    from agents.config import TrainConfig, shipped_config
+    from agents.sweep import load_sweep
+    from stable_baselines3 import A2C
+
+    registered, load = loading.available_algorithms(), loading.algorithm_class
+    monkeypatch.setattr(loading, "available_algorithms", lambda: sorted([*registered, "a2c"]))
+    monkeypatch.setattr(loading, "algorithm_class", lambda name: A2C if name == "a2c" else load(name))
+    assert shipped_config("a2c", "residual") is None and shipped_config("ppo", "residual") is not None
+    assert load_sweep({"algo": "a2c", "timesteps": 64}, tmp_path)["base"] == {}
+    out = tmp_path / "run"
+    assert train_main(["--algo", "a2c", "--timesteps", "16", "--scenario", "paper-0.5hz", "--out", str(out),
+                       "--no-progress"]) == 0
+    assert "no config ships for a2c in residual mode; training with TrainConfig's defaults" in capsys.readouterr().err
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["algo"] == "a2c" and meta["config"] == {"normalize": False} and meta["config_file"] == ""
+    assert meta["timesteps"] >= 16 and TrainConfig().n_envs == 1
+    assert A2C.load(out / "model.zip", device="cpu").n_envs == TrainConfig().n_envs
 
 
 def test_blf_train_and_a_sweep_check_a_run_the_same_way(tmp_path, capsys):

@@ -298,7 +298,8 @@ def test_tiny_training_through_blf_train_and_eval(tmp_path, capsys):
 
 
 def test_the_shipped_config_is_valid_and_plain():
-    from agents.train import CONFIG_DIR, load_config
+    from agents.config import CONFIG_DIR
+    from agents.train import load_config
 
     cfg = load_config(CONFIG_DIR / "ppo_lagrangian_PlanarBLF-v0.yaml")
     assert cfg["env"]["terminate_on_violation"] is False
