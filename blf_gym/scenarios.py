@@ -238,7 +238,8 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
         raise ValueError(f"unknown {kind}(s) {sorted(unknown, key=repr)}; accepted: {list(VARIATIONS)}")
     out: dict[str, Any] = {}
     for name, value in variations.items():
-        if not _BY_NAME[name].per_joint:
+        knob = _BY_NAME[name]
+        if not knob.per_joint:
             out[name] = _knob(kind, name, value, strict)
             continue
         if is_real(value):
@@ -246,7 +247,6 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
             continue
         seq = isinstance(value, (list, tuple)) or (isinstance(value, np.ndarray) and value.ndim == 1)
         if not (seq and len(value) == n_links):
-            knob = _BY_NAME[name]
             lo, hi = knob.safe if strict else (None, None)
             raise ValueError(
                 f"{kind} {name!r} must be one real number (the same for every joint) or a "
