@@ -5,27 +5,28 @@ compiled closed loop, observations, rewards and info. There is no other copy of 
 
 from __future__ import annotations
 
-import math
 from dataclasses import fields, replace
-from typing import Any, Mapping, NamedTuple, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 from numba import njit
 
-from .bounds import BOUND_LEN, KA, KA_DOT, KB, KB_DOT, bounds_into
+from .bounds import BOUND_LEN, KA, KB
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .registry import available_controllers, available_observers, make_controller, make_observer
-from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERMINATED, R_TORQUE, R_TRACKING, R_TRUNCATED,
-                     R_VIOLATED, SCORE_REWARD, STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, RewardWeights, score_step, step_outputs)
-from .params import DT_MIN, MAX_DURATION, PRESETS, REFERENCE_PACK, Scenario, check_bool, check_int, check_real
-from .reference import reference_into
+from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
+                     STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
+from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real
+from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, Entry,
+                          groups, observation_index, observation_layout, observe_batch, optional_observations,
+                          plan_row)
 from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
 from .simulate import CHANNELS, ClosedLoop, divergence_message
 from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
                      ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
-__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout", "observation_index", "SQUASH_VELOCITY",
-           "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
+__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
+           "observation_index", "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
 
@@ -39,203 +40,6 @@ MAX_REFERENCE_BYTES = 8 * 2 ** 30
 its per-step error for the relative one) may take over all arms, bytes; beyond it the env refuses
 to be built and says which arguments to lower (``num_envs``, ``duration``) or which reward needs
 none (``reward_weights={}``, the shaped reward)."""
-
-# Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
-SQUASH_VELOCITY = 100.0
-"""c for velocities (qd_d, x2_hat, privileged qd), rad/s."""
-SQUASH_REF_ACCELERATION = 1000.0
-"""c for the reference acceleration qdd_d, rad/s^2."""
-SQUASH_DISTURBANCE = 1.0e4
-"""c for lumped disturbances (x3_hat, privileged x3), rad/s^2."""
-_ANGLE_CLIP = 4.0 * math.pi
-_ERR_CLIP = 10.0
-
-
-class Entry(NamedTuple):
-    """One group of observation entries."""
-
-    group: str
-    count: "int | None"
-    """Entries: None = one per joint, else that many."""
-    name: str
-    """Label ("{j}" = the joint, from 1; "a|b" names each of several entries)."""
-    unit: str
-    low: float
-    high: float
-    kind: str = "base"
-    """"base" (always there), "privileged" (with privileged=True) or "optional" (opt-in by name
-    through the env's ``observation_extras``)."""
-    source: str = ""
-    """Where an optional entry's value comes from: ``controller:<output>`` (a controller output at the
-    start of the last integration step), ``observer:<state>`` or ``last:<column>`` (a column of
-    blf_gym.status.LAST_COLUMNS)."""
-    scale: float = 0.0
-    """For an optional entry: > 0 squashes the value as scale * tanh(value / scale); < 0 divides
-    it by the arm's max_torque; 0 passes it as it is (clipped to the box)."""
-
-
-OBSERVATION: tuple[Entry, ...] = (
-    Entry("y", None, "y_{j} (measured angle)", "rad", -_ANGLE_CLIP, _ANGLE_CLIP),
-    Entry("q_d", None, "q_d_{j}", "rad", -_ANGLE_CLIP, _ANGLE_CLIP),
-    Entry("qd_d", None, f"qd_d_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY),
-    Entry("qdd_d", None, f"qdd_d_{{j}} (squashed {SQUASH_REF_ACCELERATION:g})", "rad/s^2", -SQUASH_REF_ACCELERATION,
-          SQUASH_REF_ACCELERATION),
-    Entry("e1_normalized", None, "(y_{j} - q_d_{j}) / bound (measured error, clipped)", "-", -_ERR_CLIP, _ERR_CLIP),
-    Entry("k_a", 1, "k_a", "rad", 0.0, 10.0),
-    Entry("k_b", 1, "k_b", "rad", 0.0, 10.0),
-    Entry("k_a_rate", 1, "k_a'", "rad/s", -10.0, 10.0),
-    Entry("k_b_rate", 1, "k_b'", "rad/s", -10.0, 10.0),
-    Entry("phase", 2, "sin(2 pi f t)|cos(2 pi f t)", "-", -1.0, 1.0),
-    Entry("time", 1, "t / duration", "-", 0.0, 1.0),
-    Entry("u", None, "u_{j} / max_torque (last applied)", "-", -1.0, 1.0),
-    Entry("x2_hat", None, f"x2_hat_{{j}} (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY),
-    Entry("x3_hat", None, f"x3_hat_{{j}} (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
-          SQUASH_DISTURBANCE),
-    Entry("qd", None, f"qd_{{j}} true (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY, SQUASH_VELOCITY,
-          "privileged"),
-    Entry("x3", None, f"x3_{{j}} true (squashed {SQUASH_DISTURBANCE:g})", "rad/s^2", -SQUASH_DISTURBANCE,
-          SQUASH_DISTURBANCE, "privileged"),
-    # opt-in entries (observation_extras=(...)): computed from named signals, after the others
-    Entry("u_law", None, "u_law_{j} / max_torque (the inner law's torque, last step)", "-", -1.0, 1.0, "optional",
-          "last:u_law", -1.0),
-    Entry("z2_hat", None, f"z2_hat_{{j}} = x2_hat - alpha1 (the law's, squashed {SQUASH_VELOCITY:g})", "rad/s",
-          -SQUASH_VELOCITY, SQUASH_VELOCITY, "optional", "controller:z2_hat", SQUASH_VELOCITY),
-)
-"""The observation vector, declared once, in order. The Python side (:func:`observation_index`,
-:func:`observation_layout`, the env's box and docstring, the baseline policies) and the compiled
-filler (``_observe_batch``, through the ``_OFF_*`` offsets) read it. Privileged groups come after
-the base ones and exist only with ``privileged=True``; optional groups come last, in the order the
-env's ``observation_extras`` names them, and are filled from their ``source``."""
-
-
-def optional_observations() -> list[str]:
-    """The names accepted by the env's ``observation_extras`` (the optional groups of OBSERVATION)."""
-    return [e.group for e in OBSERVATION if e.kind == "optional"]
-
-
-_RP_FREQ = REFERENCE_PACK.index("frequency")
-
-
-def _offsets() -> dict[str, tuple[int, int]]:
-    """Each group's start as (a, b): the offset is a * n + b for n joints."""
-    out, a, b = {}, 0, 0
-    for group, count, *_ in (e for e in OBSERVATION if e.kind != "optional"):
-        out[group] = (a, b)
-        if count is None:
-            a += 1
-        else:
-            b += count
-    return out
-
-
-_OFF = _offsets()
-# compile-time offsets of the filler (a * n + b)
-_OFF_Y, _OFF_Q_D, _OFF_QD_D, _OFF_QDD_D = _OFF["y"], _OFF["q_d"], _OFF["qd_d"], _OFF["qdd_d"]
-_OFF_E1, _OFF_KA, _OFF_KB, _OFF_KAD, _OFF_KBD = (_OFF["e1_normalized"], _OFF["k_a"], _OFF["k_b"], _OFF["k_a_rate"],
-                                                 _OFF["k_b_rate"])
-_OFF_PHASE, _OFF_TIME, _OFF_U, _OFF_X2H, _OFF_X3H = _OFF["phase"], _OFF["time"], _OFF["u"], _OFF["x2_hat"], _OFF["x3_hat"]
-_OFF_QD, _OFF_X3 = _OFF["qd"], _OFF["x3"]
-
-
-def _groups(privileged: bool, extras: Sequence[str]) -> list[Entry]:
-    rows = [e for e in OBSERVATION if e.kind == "base" or (privileged and e.kind == "privileged")]
-    by = {e.group: e for e in OBSERVATION if e.kind == "optional"}
-    return rows + [by[g] for g in extras]
-
-
-def observation_index(n: int = 3, privileged: bool = True, extras: Sequence[str] = ()) -> dict[str, slice]:
-    """Where each group of :data:`OBSERVATION` sits in the observation vector (with the privileged
-    groups unless ``privileged=False``, and the optional ones named in ``extras``)."""
-    out, o = {}, 0
-    for e in _groups(privileged, extras):
-        m = n if e.count is None else e.count
-        out[e.group] = slice(o, o + m)
-        o += m
-    return out
-
-
-def observation_layout(n: int = 3, privileged: bool = False, extras: Sequence[str] = ()) -> list[tuple[str, str, float, float]]:
-    """(name, unit, low, high) of every observation entry, in order."""
-    rows: list[tuple[str, str, float, float]] = []
-    for e in _groups(privileged, extras):
-        if e.count is None:
-            rows += [(e.name.format(j=j + 1), e.unit, e.low, e.high) for j in range(n)]
-        else:
-            names = e.name.split("|")
-            rows += [(names[i] if len(names) == e.count else e.name, e.unit, e.low, e.high) for i in range(e.count)]
-    return rows
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _at(off, n):
-    return off[0] * n + off[1]
-
-
-@njit(cache=True, error_model="numpy")
-def _sq(x, c):
-    return c * np.tanh(x / c)
-
-
-@njit(cache=True, error_model="numpy")
-def _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, out, ref, bnd, o2, o3):
-    """Fill ``out`` (N, obs_dim) with the entries of :data:`OBSERVATION` (offsets from its
-    declaration), and ``ref`` / ``bnd`` with the reference and bounds at ``t``."""
-    N = X.shape[0]
-    n = last_x3.shape[1]
-    for b in range(N):
-        reference_into(t[b], rp[b], plant[b], ref[b])
-        bounds_into(t[b], bp[b], bnd[b])
-        ka = bnd[b, KA]
-        kb = bnd[b, KB]
-        o = out[b]
-        for j in range(n):
-            # the measured angle, and the error the agent can know: from the measurement, not
-            # from the true angle (info["e1"] and the privileged entries keep the true one)
-            y = X[b, j] + noise[b, j]
-            e = y - ref[b, j]
-            o[_at(_OFF_Y, n) + j] = min(max(y, -_ANGLE_CLIP), _ANGLE_CLIP)
-            o[_at(_OFF_Q_D, n) + j] = min(max(ref[b, j], -_ANGLE_CLIP), _ANGLE_CLIP)
-            o[_at(_OFF_QD_D, n) + j] = _sq(ref[b, n + j], SQUASH_VELOCITY)
-            o[_at(_OFF_QDD_D, n) + j] = _sq(ref[b, 2 * n + j], SQUASH_REF_ACCELERATION)
-            en = e / ka if e >= 0.0 else e / kb
-            o[_at(_OFF_E1, n) + j] = min(max(en, -_ERR_CLIP), _ERR_CLIP)
-        o[_at(_OFF_KA, n)] = ka
-        o[_at(_OFF_KB, n)] = kb
-        o[_at(_OFF_KAD, n)] = bnd[b, KA_DOT]
-        o[_at(_OFF_KBD, n)] = bnd[b, KB_DOT]
-        ph = 2.0 * np.pi * rp[b, _RP_FREQ] * t[b]
-        o[_at(_OFF_PHASE, n)] = np.sin(ph)
-        o[_at(_OFF_PHASE, n) + 1] = np.cos(ph)
-        o[_at(_OFF_TIME, n)] = min(max(t[b] / dur[b], 0.0), 1.0)
-        for j in range(n):
-            o[_at(_OFF_U, n) + j] = min(max(last[b, LAST_U * n + j] / umax[b], -1.0), 1.0)
-            o[_at(_OFF_X2H, n) + j] = _sq(X[b, o2 + j], SQUASH_VELOCITY)
-            o[_at(_OFF_X3H, n) + j] = _sq(X[b, o3 + j], SQUASH_DISTURBANCE)
-        if privileged:
-            for j in range(n):
-                o[_at(_OFF_QD, n) + j] = _sq(X[b, n + j], SQUASH_VELOCITY)
-                o[_at(_OFF_X3, n) + j] = _sq(last_x3[b, j], SQUASH_DISTURBANCE)
-
-
-@njit(cache=True, error_model="numpy")
-def _observe_all(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd,
-                 low, high, obs, state, o2, o3):
-    """:func:`_observe_batch`, then the float32 observations clipped to the box (float32 rounding
-    at its edges) into ``obs``, and per joint [e1, g_upper, g_lower] into ``state`` (N, 3n), in
-    the g <= 0 convention (positive means the bound is broken). One compiled call per step."""
-    _observe_batch(X, t, rp, bp, plant, last, last_x3, noise, dur, umax, privileged, obs64, ref, bnd, o2, o3)
-    N, m = obs64.shape
-    n = last_x3.shape[1]
-    for b in range(N):
-        for k in range(m):
-            v = np.float32(obs64[b, k])
-            obs[b, k] = min(max(v, low[k]), high[k])
-        for j in range(n):
-            ej = X[b, j] - ref[b, j]
-            state[b, j] = ej
-            state[b, n + j] = ej - bnd[b, KA]
-            state[b, 2 * n + j] = -bnd[b, KB] - ej
-
 
 # per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
 (EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP, EP_BREACHES,
@@ -650,15 +454,31 @@ class EnvCore:
                             for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
 
     def _set_observation(self, observation_extras: Sequence[str]) -> None:
-        """The observation's layout, its box and where its observer and optional entries come from."""
+        """The observation's layout, its box and the compiled filler's plan: each row of
+        :data:`~blf_gym.observation.OBSERVATION` in use, its source resolved against the blocks."""
         self.observation_extras = tuple(observation_extras)
-        self._x2h, self._x3h = self._observer_offset("x2_hat"), self._observer_offset("x3_hat")
-        self._extras = [self._extra_source(g) for g in self.observation_extras]
-        layout = observation_layout(self.n, self.privileged, self.observation_extras)
+        n, conn = self.n, self.loop.connection
+        plan, scale, at = [], [], 0
+        for e in groups(self.privileged, self.observation_extras):
+            try:
+                frm, col, m = plan_row(e, n, conn.observer_signal, conn.out_offsets.get, N_LAST * n)
+            except LookupError:
+                kind, _, name = e.source.partition(":")
+                block = (f"observer {self.observer.name!r} does not provide (its states: {list(self.observer.states)})"
+                         if kind == "observer" else f"controller {self.controller.name!r} does not provide "
+                         f"(its outputs: {list(conn.out_offsets)})")
+                what = f"{name!r}" if name == e.group else f"{e.source!r} (entry {e.group!r})"
+                raise ValueError(f"{self.owner} the observation reads {what}, which {block}") from None
+            plan.append((frm, col, m, at))
+            scale.append(e.scale)
+            at += m
+        self._plan = np.array(plan, dtype=np.int64).reshape(-1, 4)
+        self._plan_scale = np.array(scale, dtype=np.float64)
+        layout = observation_layout(n, self.privileged, self.observation_extras)
         self.obs_dim = len(layout)
-        self._base_dim = len(observation_layout(self.n, self.privileged))
-        self.obs_low = np.array([r[2] for r in layout], dtype=np.float32)
-        self.obs_high = np.array([r[3] for r in layout], dtype=np.float32)
+        self._box64 = (np.array([r[2] for r in layout]), np.array([r[3] for r in layout]))
+        self.obs_low = self._box64[0].astype(np.float32)
+        self.obs_high = self._box64[1].astype(np.float32)
 
     def _allocate(self) -> None:
         """The per-arm arrays of the episodes: scenarios, generators, counters, the record, the
@@ -667,7 +487,6 @@ class EnvCore:
         self.scenarios: list[Scenario] = [self.base] * N
         self.rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(N)]
         self.steps = np.zeros(N, dtype=np.int64)
-        self.last_x3 = np.zeros((N, n))
         self.done = np.zeros(N, dtype=bool)
         self._ref = np.zeros((N, 3 * n))
         self._bnd = np.zeros((N, BOUND_LEN))
@@ -694,7 +513,6 @@ class EnvCore:
         self._stds = np.zeros(N)
         self._no_base = np.zeros((N, n))
         self._noisy: list[int] = []
-        self._obs64 = np.empty((N, self._base_dim))
         self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
         # the score term: the law's cumulative e1^2 per 1 ms sample, and each arm's potential
         self._score_w = float(self.weights.score)
@@ -708,56 +526,6 @@ class EnvCore:
         self._phi = np.zeros(N)
         self._score_term = np.zeros(N)
 
-    def _observer_offset(self, name: str) -> int:
-        """Where the observer's state ``name`` (n entries) sits in the loop's state rows; ValueError if
-        the observer has none (the observation reads it)."""
-        part = self.loop.connection.observer_signal(name)
-        if part is None or part[1] != self.n:
-            raise ValueError(f"{self.owner} the observation reads {name!r}, which observer {self.observer.name!r} "
-                             f"does not provide (its states: {list(self.observer.states)})")
-        return 2 * self.n + part[0]
-
-    def _extra_source(self, group: str) -> tuple[int, int, float, Entry]:
-        """(column in the loop's state or last-signals array, 0 = state / 1 = last, scale, entry) of
-        an optional observation entry, checked against the blocks in use."""
-        e = next(x for x in OBSERVATION if x.group == group)
-        kind, _, name = e.source.partition(":")
-        n = self.n
-        want = n if e.count is None else e.count
-        if kind == "observer":
-            part = self.loop.connection.observer_signal(name)
-            where, src = (None if part is None else 2 * n + part[0]), 0
-            size = None if part is None else part[1]
-        elif kind == "controller":
-            part = self.loop.connection.out_offsets.get(name)
-            where, src = (None if part is None else N_LAST * n + part[0]), 1
-            size = None if part is None else part[1]
-        elif kind == "last":
-            from .status import LAST_COLUMNS
-
-            where, src, size = (LAST_COLUMNS.index(name) * n if name in LAST_COLUMNS else None), 1, n
-        else:
-            raise ValueError(f"observation entry {group!r}: unknown source {e.source!r} (observer:, controller: "
-                             "or last:)")
-        if where is None:
-            raise ValueError(f"{self.owner} observation_extras entry {group!r} reads {e.source!r}, which "
-                             f"controller {self.controller.name!r} and observer {self.observer.name!r} do not provide")
-        if size != want:
-            raise ValueError(f"observation entry {group!r}: its source {e.source!r} has {size} entries, not {want}")
-        return where, src, e.scale, e
-
-    def _fill_extras(self, obs: np.ndarray) -> None:
-        """The optional observation entries, after the compiled ones."""
-        o = self._base_dim
-        for where, src, scale, e in self._extras:
-            m = self.n if e.count is None else e.count
-            v = (self.loop.X if src == 0 else self.loop.last)[:, where : where + m]
-            if scale > 0:
-                v = scale * np.tanh(v / scale)
-            elif scale < 0:
-                v = v / self._umax[:, None]
-            obs[:, o : o + m] = np.clip(v.astype(np.float32), self.obs_low[o : o + m], self.obs_high[o : o + m])
-            o += m
 
     # ------------------------------------------------------------------ reset
     def check_options(self, options: Any) -> dict[str, Any]:
@@ -802,7 +570,6 @@ class EnvCore:
         for i in idx:
             self._phi[i] = 0.0
             self.steps[i] = 0
-            self.last_x3[i] = 0.0
             self.done[i] = False
             self._ep_int[i] = 0
             self._ep_int[i, EP_FIRST_VIOL] = -1
@@ -1024,7 +791,6 @@ class EnvCore:
         last = self.loop.last.copy()  # the info entries below are views of this fresh copy
         sl = self._last_slices
         x3 = last[:, sl[2]]
-        self.last_x3[:] = x3
         info: dict[str, Any] = {
             "cost": res[R_VIOLATED],
             "violating_samples": status[:, ST_VIOL_SAMPLES],
@@ -1037,9 +803,8 @@ class EnvCore:
             "controller_outputs": {name: last[:, s] for name, s in self._out_slices},
             "termination_reason": reason,
             "truncation_reason": trunc_reason,
-            "reward_info": {"alive": res[R_ALIVE], "tracking": res[R_TRACKING],
-                            "torque": res[R_TORQUE], "score": self._score_term.copy(),
-                            "violation": res[R_PENALTY]},
+            "reward_info": {"alive": res[R_ALIVE], **{t.name: res[R_TERM0 + k] for k, t in enumerate(TERMS)},
+                            "score": self._score_term.copy(), "violation": res[R_PENALTY]},
         }
         if self._filter_slices:
             info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}
@@ -1122,7 +887,6 @@ class EnvCore:
                 rec.commit(np.clip(nrec - j * m, 0, m))
         self.steps += periods
         _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
-        self.last_x3[:] = self.loop.last[:, self._last_slices[2]]
 
     def episode_metrics(self, i: int, termination_reason: str | None = None,
                         truncation_reason: str | None = None) -> dict[str, Any]:
@@ -1217,11 +981,8 @@ class EnvCore:
                     noise[i] = self.rngs[i].standard_normal(n) * self._stds[i]
         obs = np.empty((N, self.obs_dim), dtype=np.float32)
         state = np.empty((N, 3 * n))
-        _observe_all(X, t, b.ref, b.bnd, b.plant, self.loop.last, self.last_x3, noise, self._durations,
-                     self._umax, self.privileged, self._obs64, self._ref, self._bnd, self.obs_low,
-                     self.obs_high, obs, state, self._x2h, self._x3h)
-        if self._extras:
-            self._fill_extras(obs)
+        observe_batch(X, t, b.ref, b.bnd, b.plant, self.loop.last, noise, self._durations, self._umax, self._plan,
+                      self._plan_scale, self._box64[0], self._box64[1], obs, self._ref, self._bnd, state)
         if info is not None:
             bnd = self._bnd.copy()
             info["time"] = t

@@ -58,16 +58,24 @@ def _reward_text() -> str:
         "``reward_weights={}`` (or a :class:`blf_gym.core.RewardWeights` / dict of its fields) gives the "
         f"shaped reward, with field defaults {_weights_text(RewardWeights())}::", 96,
         initial_indent="    ", subsequent_indent="    ")
+    from .reward import TERMS
+
+    formula = " - ".join(["r = alive", *(f"{t.name} * E_{t.name}" for t in TERMS)])
+    terms = "\n".join(textwrap.fill(f"E_{t.name}: the mean over the step's 1 ms samples and the joints of {t.meaning}.",
+                                     96, initial_indent="    * ", subsequent_indent="      ") for t in TERMS)
     return f"""{first}
 
 {second}
 
-        r = alive - tracking * E - torque * U + score * (phi_k - phi_(k-1)) - violation * [ended by it]
+        {formula} + score * (phi_k - phi_(k-1)) - violation * [ended by it]
 
-    with E the mean over the step's 1 ms samples and the joints of (e1 / bound)^2 (<= 1 inside the
-    bounds) and U the mean of (u / max_torque)^2. The env refuses weights under which ending an
-    episode by a violation could pay (see :class:`~blf_gym.reward.RewardWeights`). The terms are
-    returned in ``info["reward_info"]``."""
+    with
+
+{terms}
+
+    The env refuses weights under which ending an episode by a violation could pay (see
+    :class:`~blf_gym.reward.RewardWeights`). The terms are returned in ``info["reward_info"]``,
+    by name (``alive``, one per term, ``score`` and ``violation``)."""
 
 
 def _truncation_text() -> str:

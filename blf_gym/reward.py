@@ -1,15 +1,19 @@
-"""The reward and the per-sample sums it is built from, in one file (docs/extending.md, "A reward term").
+"""The reward, declared as the table :data:`TERMS`, and the per-sample sums it is built from.
 
-The compiled kernel calls :func:`accumulate_sample` at every 1 ms sample and adds its terms to the
-columns of :data:`SUM_COLUMNS`; the env turns one agent step's sums into the reward with
-:func:`step_outputs` and the weights of :class:`RewardWeights`. A new reward term built from
-per-sample signals is a change in this file only: a column, its line in ``accumulate_sample``, a
-weight (default 0, so existing agents score the same) and its line in ``step_outputs``.
+Each per-sample reward term is one row (a :class:`RewardTerm`): its name (the weight's field in
+:class:`RewardWeights` and its key in ``info["reward_info"]``), its compiled per-sample function,
+its default weight, unit, bound and meaning. The kernel calls :func:`accumulate_sample` at every 1 ms
+sample; that function is generated from the table and adds each row's value to its column of
+:data:`SUM_COLUMNS`. The env turns one agent step's sums into the reward with :func:`step_outputs`,
+which reads the weights in the table's order. A new term is one row (and its function), with a
+default weight of 0 so existing agents score the same: docs/extending.md, "A reward term".
 """
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -18,8 +22,8 @@ from .bounds import KA, KB
 from .params import check_bool, check_real
 from .status import ST_DIVERGED, ST_VIOL_STEPS
 
-__all__ = ["SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample", "step_outputs",
-           "score_step"]
+__all__ = ["TERMS", "RewardTerm", "SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample",
+           "step_outputs", "score_step"]
 
 PHI_CAP = 50.0
 """Bound on the score potential (nats): |phi| <= PHI_CAP, so a violation penalty of 2 * PHI_CAP per
@@ -27,43 +31,107 @@ unit of ``score`` weight puts every violating episode below every other."""
 RMSE_FLOOR_SQ = float(np.radians(1e-12)) ** 2
 """The floor of a mean squared error (rad^2): score_vs_law's RMSE floor of 1e-12 degrees."""
 
-SUM_COLUMNS = ("error_estimate_max", "sum_e1_over_bound_sq", "sum_u_over_max_sq", "samples")
-"""Per-arm float sums of one kernel call, declared once: the largest ODE3 error estimate, the sums
-over 1 ms samples and joints of (e1/bound)^2 and (u/max_torque)^2, the number of samples; then,
-per joint, the sum over samples of e1^2 (rad^2)."""
-SUM_ERR_MAX, SUM_EN2, SUM_UN2, SUM_SAMPLES = (SUM_COLUMNS.index(c) for c in SUM_COLUMNS)
+@njit(cache=True, error_model="numpy", inline="always")
+def tracking_sample(x, y, ref, bnd, u, cout, umax, n):
+    """Sum over joints of (e1 / bound)^2, the true error normalized by the bound on its side."""
+    s = 0.0
+    for i in range(n):
+        e = x[i] - ref[i]
+        en = e / bnd[KA] if e >= 0.0 else e / bnd[KB]
+        s += en * en
+    return s
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def torque_sample(x, y, ref, bnd, u, cout, umax, n):
+    """Sum over joints of (u / max_torque)^2, the applied torque."""
+    s = 0.0
+    for i in range(n):
+        un = u[i] / umax
+        s += un * un
+    return s
+
+
+class RewardTerm(NamedTuple):
+    """One per-sample reward term: a row of :data:`TERMS`. Per agent step the term is ``-weight``
+    times the mean of ``sample`` over the step's 1 ms samples and the joints."""
+
+    name: str
+    """The weight's field in :class:`RewardWeights` and the key in ``info["reward_info"]``."""
+    sample: Any
+    """A numba function ``(x, y, ref, bnd, u, cout, umax, n) -> float``: the term at one 1 ms sample,
+    summed over the joints. ``x`` the state [q, qd, observer states, controller states] (true
+    angles first), ``y`` the measured angles, ``ref`` [q_d, qd_d, qdd_d], ``bnd`` [k_a, k_a', k_a'',
+    k_b, k_b', k_b''] (:data:`blf_gym.bounds.BOUND_SIGNALS`), ``u`` the applied torque, ``cout``
+    the controller's outputs (u_law first), ``umax`` the torque limit."""
+    weight: float
+    """Default weight (>= 0); 0 keeps existing rewards."""
+    unit: str
+    """Unit of the per-step mean."""
+    bound: float
+    """The largest per-step mean while the arm stays inside its bounds: the ``alive`` default and
+    the check that a violation never pays read it."""
+    meaning: str
+
+
+TERMS: tuple[RewardTerm, ...] = (
+    RewardTerm("tracking", tracking_sample, 1.0, "-", 1.0,
+               "(e1 / bound)^2: the tracking error normalized by the bound on its side (with ``relative``, "
+               "the squared error relative to the law's; see RewardWeights)"),
+    RewardTerm("torque", torque_sample, 0.01, "-", 1.0, "(u / max_torque)^2: the applied torque"),
+)
+"""The per-sample reward terms, declared once, in order."""
+TRACKING = 0
+"""The row of the tracking term, whose ``relative`` form compares with the law."""
+
+SUM_COLUMNS = ("error_estimate_max", "samples") + tuple(f"sum_{t.name}" for t in TERMS)
+"""Per-arm float sums of one kernel call: the largest ODE3 error estimate, the number of 1 ms
+samples, each term's sum over the samples (:data:`TERMS`); then, per joint, the sum over samples
+of e1^2 (rad^2)."""
+SUM_ERR_MAX, SUM_SAMPLES = 0, 1
+SUM_TERM0 = 2
+"""The column of the first term's sum."""
 SUM_E2_JOINT = len(SUM_COLUMNS)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):
-    """Add one 1 ms sample's terms to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per joint);
-    returns whether the sample violates a bound. The signals at the sample: ``x`` the state [q, qd,
-    observer states, controller states] (true angles first), ``y`` the measured angles, ``ref``
-    [q_d, qd_d, qdd_d], ``bnd`` [k_a, k_a', k_a'', k_b, k_b', k_b''], ``u`` the commanded torque,
-    ``cout`` the controller's outputs (u_law first), ``umax`` the torque limit."""
-    en2 = 0.0
-    un2 = 0.0
+def errors_into(x, ref, bnd, sums, n):
+    """Add each joint's e1^2 to its column of ``sums``; return whether the sample violates a bound."""
     bad = False
     for i in range(n):
         e = x[i] - ref[i]
-        en = e / bnd[KA] if e >= 0.0 else e / bnd[KB]
-        en2 += en * en
         sums[SUM_E2_JOINT + i] += e * e
-        un = u[i] / umax
-        un2 += un * un
         if e >= bnd[KA] or e <= -bnd[KB]:
             bad = True
-    sums[SUM_EN2] += en2
-    sums[SUM_UN2] += un2
-    sums[SUM_SAMPLES] += 1.0
     return bad
 
 
+def _generate_accumulate():
+    """:func:`accumulate_sample`, written from :data:`TERMS` (one line per row) and compiled inline."""
+    lines = ["def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):",
+             "    bad = errors_into(x, ref, bnd, sums, n)"]
+    lines += [f"    sums[{SUM_TERM0 + k}] += term_{k}(x, y, ref, bnd, u, cout, umax, n)  # {t.name}"
+              for k, t in enumerate(TERMS)]
+    lines += ["    sums[SUM_SAMPLES] += 1.0", "    return bad", ""]
+    scope = {"errors_into": errors_into, "SUM_SAMPLES": SUM_SAMPLES, **{f"term_{k}": t.sample for k, t in enumerate(TERMS)}}
+    exec(compile("\n".join(lines), "<blf_gym.reward: accumulate_sample, generated from TERMS>", "exec"), scope)  # noqa: S102
+    fn = scope["accumulate_sample"]
+    fn.__module__ = __name__
+    fn.__doc__ = """Add one 1 ms sample to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per
+    joint): each term of TERMS and the sample count; returns whether the sample violates a bound.
+    Generated from TERMS; the arguments are RewardTerm.sample's."""
+    return njit(error_model="numpy", inline="always")(fn)
+
+
+accumulate_sample = _generate_accumulate()
+
+
 @dataclass(frozen=True)
-class RewardWeights:
-    """Per-agent-step reward r = alive - tracking * E - torque * U + score * (phi_k - phi_{k-1})
-    - violation * [ended by it].
+class _Weights:
+    """Per-agent-step reward r = alive - sum_k w_k E_k + score * (phi_k - phi_{k-1}) - violation *
+    [ended by it], with one term per row of :data:`TERMS` (by default ``tracking`` and ``torque``):
+    E_k is the row's per-sample value, averaged over the step's 1 ms samples and the joints, and
+    w_k its weight, a field of this class named after the row.
 
     **The score term** (``score`` > 0; the env's default is :data:`SCORE_REWARD`) pays the change of
     a potential, phi_k = (1/n) sum_j 1/2 log(L_j(k) / P_j(k)), where P_j(k) and L_j(k) are the sums
@@ -73,32 +141,24 @@ class RewardWeights:
     runs to its end returns ``score * log(score_vs_law)`` of that episode (0 for the law itself,
     > 0 for a better policy), whatever the control period. phi is kept within +-PHI_CAP.
 
-    E is the mean over the step's 1 ms samples and the joints of (e1 / bound)^2, the error
-    normalized by the bound on its side (so E <= 1 while inside the bounds); U is the mean of
-    (u / max_torque)^2 (<= 1). With ``relative`` (below) E is a ratio to the law's error instead,
-    capped at ``relative_cap`` in size, so "max E" below is 1 or ``relative_cap``. Every step
-    inside the bounds therefore loses at most ``tracking * max E + torque - alive`` against the
-    alive term. Ending an episode early by a violation
-    never pays when either
+    Inside the bounds each E_k is at most its row's ``bound`` (the tracking term's is 1, the error
+    normalized by the bound on its side; with ``relative``, ``relative_cap``), so every step inside
+    the bounds loses at most ``sum_k w_k bound_k - alive`` against the alive term. Ending an episode
+    early by a violation never pays when either
 
-    * ``alive >= tracking * max E + torque`` (the default: every step inside the bounds earns
-      r >= 0), or
-    * ``violation >= (tracking * max E + torque - alive) * max_episode_steps``: the terminal penalty
+    * ``alive >= sum_k w_k bound_k`` (the default: every step inside the bounds earns r >= 0), or
+    * ``violation >= (sum_k w_k bound_k - alive) * max_episode_steps``: the terminal penalty
       outweighs anything the rest of the episode could have cost (any discount factor).
 
     The env checks this at construction. The second form keeps rewards near zero, which suits
     critics when the tracking weight is large (the residual configs use it).
     """
 
-    tracking: float = 1.0
-    """Weight of the normalized squared tracking error (>= 0)."""
     score: float = 0.0
     """Weight of the score term (>= 0; see above). With it, ``violation`` must be at least
     ``2 * PHI_CAP * score`` so that every violating episode returns less than any other."""
-    torque: float = 0.01
-    """Weight of the normalized squared torque (>= 0)."""
     alive: float | None = None
-    """Reward per step for staying inside the bounds (>= 0); default tracking * max E + torque."""
+    """Reward per step for staying inside the bounds (>= 0); default sum_k w_k bound_k."""
     violation: float = 100.0
     """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
     relative: bool = False
@@ -125,24 +185,34 @@ class RewardWeights:
             object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
         object.__setattr__(self, "relative_cap",
                            check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
-        for name in ("tracking", "torque", "violation", "score"):
+        for name in (*(t.name for t in TERMS), "violation", "score"):
             object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
         if self.alive is None:
-            object.__setattr__(self, "alive", self.tracking * self.max_error + self.torque)
+            object.__setattr__(self, "alive", self.max_cost)
         object.__setattr__(self, "alive", check_real(o, "alive", self.alive, lo=0.0, none_ok=False,
-                                                     hint=" (or None: tracking * max E + torque)"))
+                                                     hint=" (or None: sum of each term's weight times its bound)"))
         if self.law_baseline and not self.relative:
             raise ValueError("RewardWeights.law_baseline needs relative=True")
 
     @property
     def max_error(self) -> float:
-        """The largest E inside the bounds: 1, or ``relative_cap`` when ``relative``."""
-        return float(self.relative_cap) if self.relative else 1.0
+        """The largest tracking E inside the bounds: 1, or ``relative_cap`` when ``relative``."""
+        return float(self.relative_cap) if self.relative else TERMS[TRACKING].bound
+
+    @property
+    def max_cost(self) -> float:
+        """sum_k w_k bound_k: the most the terms take from one step inside the bounds."""
+        cost = None
+        for k, t in enumerate(TERMS):
+            c = getattr(self, t.name) * (self.max_error if k == TRACKING else t.bound)
+            cost = c if cost is None else cost + c
+        return 0.0 if cost is None else cost
 
     def pack(self, terminate_on_violation: bool) -> np.ndarray:
-        """The weights as :func:`step_outputs` reads them (``wvec``)."""
-        return np.array([float(self.relative), self.relative_cap, self.alive, self.tracking, self.torque,
-                         self.violation, float(terminate_on_violation)])
+        """The weights as :func:`step_outputs` reads them (``wvec``): [relative, relative_cap, alive,
+        violation, terminate_on_violation], then each term's weight in the order of TERMS."""
+        return np.array([float(self.relative), self.relative_cap, self.alive, self.violation,
+                         float(terminate_on_violation), *(getattr(self, t.name) for t in TERMS)])
 
     def check_episode(self, max_episode_steps: int) -> None:
         """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
@@ -150,58 +220,74 @@ class RewardWeights:
             raise ValueError(f"RewardWeights: with score = {self.score!r}, violation must be >= 2 * PHI_CAP * score = "
                              f"{2 * PHI_CAP * self.score:g} so that a violating episode returns less than any "
                              f"other; got violation = {self.violation!r}")
-        deficit = self.tracking * self.max_error + self.torque - self.alive
+        deficit = self.max_cost - self.alive
         if deficit > 0 and self.violation < deficit * max_episode_steps:
             raise ValueError(
-                f"RewardWeights: with alive = {self.alive!r} < tracking * max E + torque = "
-                f"{self.tracking * self.max_error + self.torque}, violation must be >= (tracking * max E "
-                f"+ torque - alive) * max_episode_steps = {deficit * max_episode_steps:g} so that a "
-                f"violation never pays; got violation = {self.violation!r}")
+                f"RewardWeights: with alive = {self.alive!r} < the terms' most per step, sum of weight * bound = "
+                f"{self.max_cost}, violation must be >= (that - alive) * max_episode_steps = "
+                f"{deficit * max_episode_steps:g} so that a violation never pays; got violation = {self.violation!r}")
 
 
-STEP_ROWS = ("reward", "terminated", "truncated", "violated", "tracking", "torque", "penalty", "alive")
+def _weights_doc() -> str:
+    rows = "\n".join(f"    * ``{t.name}`` (default {t.weight:g}, bound {t.bound:g}, unit {t.unit}): {t.meaning}."
+                      for t in TERMS)
+    return f"{_Weights.__doc__}\n    The terms' weights (fields generated from :data:`TERMS`, each >= 0):\n\n{rows}\n"
+
+
+RewardWeights = dataclasses.make_dataclass(
+    "RewardWeights", [(t.name, float, dataclasses.field(default=t.weight)) for t in TERMS], bases=(_Weights,),
+    frozen=True, namespace={"__module__": __name__, "__doc__": _weights_doc()})
+"""The reward's weights: the fields of the base class, then one per row of :data:`TERMS`."""
+
+
+STEP_ROWS = ("reward", "terminated", "truncated", "violated", "penalty", "alive") + tuple(t.name for t in TERMS)
 """The rows of :func:`step_outputs`' result, one per arm each: the reward, whether the episode
-terminated or was truncated, whether the step violated a bound, then the reward's terms."""
-R_REWARD, R_TERMINATED, R_TRUNCATED, R_VIOLATED, R_TRACKING, R_TORQUE, R_PENALTY, R_ALIVE = (
-    STEP_ROWS.index(r) for r in STEP_ROWS)
+terminated or was truncated, whether the step violated a bound, then the reward's terms (the
+penalty, the alive term, then one per row of :data:`TERMS`)."""
+R_REWARD, R_TERMINATED, R_TRUNCATED, R_VIOLATED, R_PENALTY, R_ALIVE = range(6)
+R_TERM0 = 6
+"""The row of the first term of TERMS."""
+_N_TERMS = len(TERMS)
+_W0 = 5  # the first term's weight in wvec
 
 
 @njit(cache=True, error_model="numpy")
 def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
     """Per-arm reward terms, termination and truncation from the kernel's status and sums, into
-    the rows of ``out`` (len(STEP_ROWS), N). ``wvec`` = [relative, relative_cap, alive, tracking, torque,
-    violation, terminate_on_violation]. Returns flags: 1 if any arm's episode ended, 2 if any
-    diverged."""
+    the rows of ``out`` (len(STEP_ROWS), N), with ``wvec`` from :meth:`RewardWeights.pack`.
+    Returns flags: 1 if any arm's episode ended, 2 if any diverged."""
     N = status.shape[0]
     n = law_e2.shape[1]
     relative = wvec[0] > 0.0
-    cap, alive, w_tracking, w_torque, w_violation = wvec[1], wvec[2], wvec[3], wvec[4], wvec[5]
-    terminate_on_violation = wvec[6] > 0.0
+    cap, alive, w_violation = wvec[1], wvec[2], wvec[3]
+    terminate_on_violation = wvec[4] > 0.0
     flags = 0
     for b in range(N):
         samples = max(sums[b, SUM_SAMPLES], 1.0)
-        if relative:
-            acc = 0.0
-            for j in range(n):
-                # base is zero unless law_baseline: then the law's own value at this agent step
-                r = (sums[b, SUM_E2_JOINT + j] / samples - base[b, j]) / law_e2[b, j]
-                acc += min(max(r, -cap), cap)
-            tr = acc / n
-        else:
-            tr = sums[b, SUM_EN2] / (samples * n)
-        tq = sums[b, SUM_UN2] / (samples * n)
+        r = alive
+        for k in range(_N_TERMS):
+            if relative and k == TRACKING:
+                acc = 0.0
+                for j in range(n):
+                    # base is zero unless law_baseline: then the law's own value at this agent step
+                    rel = (sums[b, SUM_E2_JOINT + j] / samples - base[b, j]) / law_e2[b, j]
+                    acc += min(max(rel, -cap), cap)
+                mean = acc / n
+            else:
+                mean = sums[b, SUM_TERM0 + k] / (samples * n)
+            term = -wvec[_W0 + k] * mean
+            out[R_TERM0 + k, b] = term
+            r = r + term
         v = status[b, ST_VIOL_STEPS] > 0
-        term = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
-        pen = w_violation if term else 0.0
-        out[R_REWARD, b] = alive - w_tracking * tr - w_torque * tq - pen
-        out[R_TERMINATED, b] = 1.0 if term else 0.0
-        out[R_TRUNCATED, b] = 1.0 if (not term) and t_end[b] >= durations[b] - 1e-12 else 0.0
+        term_ = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
+        pen = w_violation if term_ else 0.0
+        out[R_REWARD, b] = r - pen
+        out[R_TERMINATED, b] = 1.0 if term_ else 0.0
+        out[R_TRUNCATED, b] = 1.0 if (not term_) and t_end[b] >= durations[b] - 1e-12 else 0.0
         out[R_VIOLATED, b] = 1.0 if v else 0.0
-        out[R_TRACKING, b] = -w_tracking * tr
-        out[R_TORQUE, b] = -w_torque * tq
         out[R_PENALTY, b] = -pen
         out[R_ALIVE, b] = alive
-        if term or out[R_TRUNCATED, b] > 0.0:
+        if term_ or out[R_TRUNCATED, b] > 0.0:
             flags |= 1
         if status[b, ST_DIVERGED] != 0:
             flags |= 2

@@ -3,7 +3,7 @@
 Each recipe is one file: a controller module, an observer module, a row of the observation table
 and a patch of blf_gym/reward.py. The expected values are independent of the code under test: the
 integral state against a sum of the recorded error, the observer against the true velocity, the
-observation entry against the law's published output, the reward term against the recorded speeds.
+observation entry against the law's published output, the reward term against the recorded torques.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401 (registers the ids)
-import blf_gym.core as core
+import blf_gym.observation as observation
 from blf_gym.params import preset
 from blf_gym.simulate import ClosedLoop, simulate
 
@@ -90,14 +90,14 @@ def test_the_observer_recipe_estimates_the_velocity_and_is_refused_where_it_cann
 
 
 def test_the_observation_recipe_adds_an_opt_in_entry(monkeypatch):
-    row = eval(recipe("observation").strip().rstrip(","), {"Entry": core.Entry})  # noqa: S307 (our own doc)
+    row = eval(recipe("observation").strip().rstrip(","), {"Entry": observation.Entry})  # noqa: S307 (our own doc)
     assert row.kind == "optional"
-    monkeypatch.setattr(core, "OBSERVATION", core.OBSERVATION + (row,))
+    monkeypatch.setattr(observation, "OBSERVATION", observation.OBSERVATION + (row,))
     default = gym.make("PlanarBLFResidual-v0")
     assert default.observation_space.shape == (31,)  # opt-in: the shipped agents' layout is unchanged
     env = gym.make("PlanarBLFResidual-v0", observation_extras=("z1",))
     assert env.observation_space.shape == (34,)
-    names = [r[0] for r in core.observation_layout(3, extras=("z1",))]
+    names = [r[0] for r in observation.observation_layout(3, extras=("z1",))]
     assert names[-3:] == ["z1_1 = y_1 - q_d_1 (the law's)", "z1_2 = y_2 - q_d_2 (the law's)",
                           "z1_3 = y_3 - q_d_3 (the law's)"]
     obs0, _ = default.reset(seed=3)
@@ -130,11 +130,14 @@ _REWARD_PROBE = r"""
 import json, numpy as np, gymnasium as gym, blf_gym
 assert blf_gym.__file__.startswith(%(root)r), blf_gym.__file__
 out = {}
-for w in (0.0, 1e-4):
-    env = gym.make("PlanarBLFResidual-v0", reward_weights={"speed": w}, record=True, duration=0.5)
+for w in (0.0, 0.5):
+    env = gym.make("PlanarBLFResidual-v0", reward_weights={"saturation": w}, record=True, duration=0.5,
+                   max_torque=5.0, terminate_on_violation=False)
     env.reset(seed=0)
-    out[str(w)] = [float(env.step(np.zeros(3, dtype=np.float32))[1]) for _ in range(5)]
-    out["qd"] = env.unwrapped.core.trajectory(0).qd.tolist()
+    steps = [env.step(np.zeros(3, dtype=np.float32)) for _ in range(5)]
+    out[str(w)] = [float(s[1]) for s in steps]
+    out["term" + str(w)] = [float(s[4]["reward_info"]["saturation"]) for s in steps]
+    out["u"] = env.unwrapped.core.trajectory(0).u.tolist()
 print(json.dumps(out))
 """
 
@@ -148,11 +151,13 @@ def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
                        text=True, timeout=600, env=env, cwd=tmp_path)
     assert p.returncode == 0, p.stderr[-3000:]
     res = json.loads(p.stdout.strip().splitlines()[-1])
-    qd = np.array(res["qd"])  # (50 samples, 3): 10 samples per 10 ms agent step
-    want = [1e-4 * np.mean(qd[10 * k : 10 * k + 10] ** 2) for k in range(5)]
-    got = np.array(res["0.0001"]) - np.array(res["0.0"])
-    np.testing.assert_allclose(-got, want, rtol=1e-9, atol=1e-15)
-    assert np.all(-got > 0)
+    u = np.array(res["u"])  # (50 samples, 3): 10 samples per 10 ms agent step
+    at_limit = [np.mean(np.abs(u[10 * k : 10 * k + 10]) >= 5.0) for k in range(5)]
+    assert 0 < max(at_limit) and min(at_limit) < 1  # the check below sees both cases
+    np.testing.assert_allclose(res["term0.5"], [-0.5 * f for f in at_limit], rtol=1e-12, atol=0)
+    # the default alive grows by the term's weight times its bound (1), so the reward changes by 0.5 (1 - fraction)
+    got = np.array(res["0.5"]) - np.array(res["0.0"])
+    np.testing.assert_allclose(got, [0.5 * (1 - f) for f in at_limit], rtol=1e-9, atol=1e-12)
 
 
 _KNOB_PROBE = r"""
@@ -219,3 +224,40 @@ def test_the_scenario_knob_recipe_is_one_row_and_changes_no_existing_draw(tmp_pa
         else:
             assert np.all(np.abs(lateral) <= 40.0)
             assert 25 <= pushed <= 75  # pushed one time in four: 50 of 200 expected (binomial sd 6.1)
+
+
+def test_an_observation_row_reads_any_named_signal(monkeypatch):
+    """Rows of each source kind, appended to the table, are filled from their signals: the true
+    angles, an observer state, a bound's second derivative and a last-step column, each compared
+    with the same signal read independently (the loop's state, the bounds' own function, info)."""
+    from blf_gym.bounds import BOUND_LEN, bounds_into
+
+    E = observation.Entry
+    rows = (E("q_true", None, "q_{j}", "rad", -50.0, 50.0, "optional", "state:q"),
+            E("x1h", None, "x1_hat_{j}", "rad", -50.0, 50.0, "optional", "observer:x1_hat"),
+            E("kbdd", 1, "k_b''", "rad/s^2", -1e3, 1e3, "optional", "bounds:k_b_ddot"),
+            E("x3_last", None, "x3_{j}", "rad/s^2", -1e9, 1e9, "optional", "last:x3", 1e4))
+    monkeypatch.setattr(observation, "OBSERVATION", observation.OBSERVATION + rows)
+    env = gym.make("PlanarBLFResidual-v0", observation_extras=tuple(r.group for r in rows),
+                   terminate_on_violation=False)
+    assert env.observation_space.shape == (41,)
+    core = env.unwrapped.core
+    env.reset(seed=2)
+    sc = core.scenarios[0]
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        obs, _, _, _, info = env.step(rng.uniform(-0.5, 0.5, 3).astype(np.float32))
+        X = core.loop.X[0]
+        np.testing.assert_array_equal(obs[31:34], X[:3].astype(np.float32))
+        np.testing.assert_array_equal(obs[34:37], X[6:9].astype(np.float32))  # the LESO's first state part
+        bnd = np.zeros(BOUND_LEN)
+        bounds_into(float(info["time"]), sc.bounds.pack(), bnd)
+        assert obs[37] == np.float32(bnd[2 + 3])  # k_b'' (k_a, k_a', k_a'', then k_b, k_b', k_b'')
+        np.testing.assert_array_equal(obs[38:41], (1e4 * np.tanh(info["x3"] / 1e4)).astype(np.float32))
+    bad = (E("oops", None, "?", "-", -1.0, 1.0, "optional", "nowhere:x"),
+           E("short", None, "k_a", "rad", 0.0, 10.0, "optional", "bounds:k_a"))
+    monkeypatch.setattr(observation, "OBSERVATION", observation.OBSERVATION + bad)
+    with pytest.raises(ValueError, match="'oops': unknown source 'nowhere:x'"):
+        gym.make("PlanarBLFResidual-v0", observation_extras=("oops",))
+    with pytest.raises(ValueError, match="'short': its source 'bounds:k_a' has 1 entries, not 3"):
+        gym.make("PlanarBLFResidual-v0", observation_extras=("short",))
