@@ -15,14 +15,15 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from blf_gym import ENV_IDS
 
-__all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "check_config", "env_keys",
-           "shipped_config"]
+__all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "SET_HELP", "add_config_options",
+           "apply_overrides", "check_config", "env_keys", "parse_overrides", "set_dotted", "shipped_config"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """The shipped training configs, ``<algo>_<env id>.yaml``."""
@@ -129,6 +130,74 @@ def check_config(cfg: Any, where: str) -> None:
                 raise ValueError(f"{where}: unknown env key(s) {bad}; accepted: {list(allowed)}"
                                  + (f" ({', '.join(b for b in bad if b in RUN_SET_ENV_KEYS)} is set by the "
                                     f"run itself, not by a config)" if set(bad) & set(RUN_SET_ENV_KEYS) else ""))
+
+
+SET_HELP = ("override one key of the training config, KEY=VALUE (repeatable): a key of "
+            "agents.config.TrainConfig, or env.KEY, hyperparams.KEY or policy_kwargs.KEY; VALUE is read as "
+            "YAML (1e-4, true, [64, 64], null)")
+"""The help of ``--set``, which blf-train, blf-sweep and blf-tune share."""
+
+_FLOAT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
+_NESTED = tuple(f.name for f in dataclasses.fields(TrainConfig) if _KINDS[f.name] in ("mapping", "env"))
+
+
+def set_dotted(cfg: dict[str, Any], key: str, value: Any) -> None:
+    """Set ``cfg[key]``, or ``cfg[head][sub]`` for a dotted ``head.sub``, in place."""
+    import copy
+
+    parts = key.split(".")
+    node = cfg
+    for p in parts[:-1]:
+        if node.get(p) is None:
+            node[p] = {}
+        node = node[p]
+    node[parts[-1]] = copy.deepcopy(value)
+
+
+def parse_overrides(sets: Sequence[str], where: str = "--set") -> dict[str, Any]:
+    """``KEY=VALUE`` items (see :data:`SET_HELP`) as {dotted key: value}; ValueError naming the item
+    when it is malformed or names no config key."""
+    import yaml
+
+    out: dict[str, Any] = {}
+    for item in sets:
+        key, eq, text = str(item).partition("=")
+        key = key.strip()
+        if not eq or not key:
+            raise ValueError(f"{where} {item!r}: expected KEY=VALUE (e.g. n_envs=8, env.control_period=0.02, "
+                             "hyperparams.learning_rate=1e-4)")
+        try:
+            value = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise ValueError(f"{where} {item!r}: the value is not valid YAML ({exc})") from None
+        if isinstance(value, str) and _FLOAT.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 reads 1e-4 (no dot) as a string; a command line means the number
+        head, dot, sub = key.partition(".")
+        if head not in CONFIG_KEYS:
+            raise ValueError(f"{where} {item!r}: unknown config key {head!r}; accepted: {list(CONFIG_KEYS)}")
+        if dot and (head not in _NESTED or not sub or "." in sub):
+            raise ValueError(f"{where} {item!r}: only {', '.join(_NESTED)} take a sub-key (KEY.SUB=VALUE)")
+        out[key] = value
+    return out
+
+
+def apply_overrides(cfg: Mapping[str, Any], overrides: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """A copy of ``cfg`` with the dotted ``overrides`` set, checked by :func:`check_config` (``where``
+    names it in errors)."""
+    import copy
+
+    out = copy.deepcopy(dict(cfg))
+    for key, value in overrides.items():
+        set_dotted(out, key, value)
+    check_config(out, where)
+    return out
+
+
+def add_config_options(parser: Any) -> None:
+    """``--set KEY=VALUE`` (into ``args.overrides``): the training config from the command line, the
+    same in blf-train, blf-sweep and blf-tune."""
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="overrides",
+                        help=SET_HELP)
 
 
 @dataclass(frozen=True)

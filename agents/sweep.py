@@ -57,13 +57,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from blf_gym.io import atomic_write_json, atomic_write_text
 
-from .config import CONFIG_KEYS, RunSpec, check_config, env_keys, shipped_config
+from .config import CONFIG_KEYS, RunSpec, add_config_options, check_config, env_keys, parse_overrides, set_dotted, shipped_config
 from .evaluate import CURVE_GROUPS
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
@@ -206,14 +206,11 @@ def _check_dist(key: str, spec: Any, search: str, where: str) -> None:
         raise ValueError(f"{w}: grid values need search: grid (with {search}, use choice: [...])")
 
 
-def _set(cfg: dict[str, Any], key: str, value: Any) -> None:
-    parts = key.split(".")
-    node = cfg
-    for p in parts[:-1]:
-        if node.get(p) is None:
-            node[p] = {}
-        node = node[p]
-    node[parts[-1]] = copy.deepcopy(value)
+def _merged(file_overrides: Any, cli: Mapping[str, Any] | None) -> Any:
+    """The sweep file's overrides with the command line's ``--set`` ones over them."""
+    if not cli or not isinstance(file_overrides, dict):
+        return file_overrides
+    return {**file_overrides, **cli}
 
 
 def _resolve_config_path(value: str, folder: Path) -> Path:
@@ -226,7 +223,8 @@ def _resolve_config_path(value: str, folder: Path) -> Path:
     raise ValueError(f"config file not found: {value} (looked next to the sweep file and in {CONFIG_DIR})")
 
 
-def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) -> dict[str, Any]:
+def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
+               overrides: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Read and check a sweep file (or an already-parsed mapping); returns the normalized spec.
 
     Raises ValueError naming the key and the accepted values for anything wrong."""
@@ -256,7 +254,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
         "observer": raw.get("observer"),
         "scenario": raw.get("scenario", "randomized"), "timesteps": raw.get("timesteps", 300_000),
         "seeds": raw.get("seeds", [0]), "search": raw.get("search", "grid"), "num_samples": raw.get("num_samples"),
-        "search_seed": raw.get("search_seed", 0), "overrides": raw.get("overrides") or {},
+        "search_seed": raw.get("search_seed", 0), "overrides": _merged(raw.get("overrides") or {}, overrides),
         "space": raw.get("space") or {}, "scheduler": raw.get("scheduler"), "concurrency": raw.get("concurrency"),
         "time_budget_s": raw.get("time_budget_s"), "note": raw.get("note"),
     }
@@ -333,7 +331,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None) ->
     for cfg in ([load_config(f) for f in files] or [spec["base"]]):
         trial = copy.deepcopy(cfg)
         for k, v in spec["overrides"].items():
-            _set(trial, k, v)
+            set_dotted(trial, k, v)
         check_config(trial, f"{where}: the base config with the overrides")
         scoring.add((trial.get("curve_suite_seeds", 4), (trial.get("env") or {}).get("duration")))
     if len(scoring) > 1:
@@ -350,10 +348,10 @@ def trial_config(spec: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]
 
     cfg = load_config(params["config"]) if "config" in params else copy.deepcopy(spec["base"])
     for k, v in spec["overrides"].items():
-        _set(cfg, k, v)
+        set_dotted(cfg, k, v)
     for k, v in params.items():
         if k != "config":
-            _set(cfg, k, v)
+            set_dotted(cfg, k, v)
     check_config(cfg, "trial config")
     return cfg
 
@@ -918,6 +916,7 @@ def _parser() -> argparse.ArgumentParser:
                                 epilog="See docs/sweeps.md for the sweep file, clusters and the scaling figures.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sweep", type=Path, help="the sweep file (YAML; agents/configs/sweeps/ has examples)")
+    add_config_options(p)
     p.add_argument("--out", type=Path, default=None, metavar="DIR",
                    help="folder for the runs, sweep.json and sweep.md (default runs/sweeps/<name>); on a "
                         "cluster, a folder every node can write (a shared file system)")
@@ -940,7 +939,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.concurrency is not None and args.concurrency < 1:
             raise ValueError("--concurrency must be >= 1")
-        spec = load_sweep(args.sweep)
+        spec = load_sweep(args.sweep, overrides=parse_overrides(args.overrides))  # --set over the file's overrides
         try:
             import optuna  # noqa: F401
             import ray.tune  # noqa: F401

@@ -32,14 +32,14 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json
 
-from .config import RunSpec, TrainConfig, check_config, shipped_config
+from .config import RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, parse_overrides, shipped_config
 
 __all__ = ["main", "load_config", "train"]
 
@@ -207,10 +207,11 @@ def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -
 
 
 def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | None, resume: bool,
-            prior: dict[str, Any] | None, meta_path: Path) -> tuple[RunSpec, dict[str, Any], str]:
+            prior: dict[str, Any] | None, meta_path: Path,
+            overrides: Mapping[str, Any]) -> tuple[RunSpec, dict[str, Any], str]:
     """The run to train: its spec (options, else the resumed run's own settings, else the
-    defaults), its config (the resumed run's own, or the file) and the config file's path ("" when
-    none ships for the algorithm: TrainConfig's defaults)."""
+    defaults), its config (the resumed run's own, or the file with the dotted ``overrides`` set)
+    and the config file's path ("" when none ships for the algorithm: TrainConfig's defaults)."""
     if resume and prior is not None:
         given = _resume_settings(prior, given, meta_path)
         if given["mode"] == "plain":
@@ -225,10 +226,14 @@ def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | N
     if resume and prior is not None and isinstance(prior.get("config"), dict):
         cfg = prior["config"]
         cfg_file = str(prior.get("config_file") or "")
-        if config is not None and (json.dumps(_stated(load_config(config)), sort_keys=True)
-                                   != json.dumps(_stated(cfg), sort_keys=True)):
-            raise ValueError(f"--config {config} differs from the config this run was trained with "
-                             f"({meta_path}, 'config'); --resume keeps the run's own config")
+        if config is not None or overrides:
+            # what the options would train with: the file (else the run's own config), with --set
+            asked = apply_overrides(load_config(config) if config is not None else cfg, overrides, "--set")
+            if json.dumps(_stated(asked), sort_keys=True) != json.dumps(_stated(cfg), sort_keys=True):
+                what = " and ".join(([f"--config {config}"] if config is not None else [])
+                                    + ([f"--set {dict(overrides)}"] if overrides else []))
+                raise ValueError(f"{what} differs from the config this run was trained with ({meta_path}, "
+                                 "'config'); --resume keeps the run's own config")
     else:
         path = Path(config) if config else shipped_config(run.algo, run.mode)
         if path is None:
@@ -238,6 +243,8 @@ def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | N
                   file=sys.stderr)
         else:
             cfg, cfg_file = load_config(path), str(path)
+        if overrides:
+            cfg = apply_overrides(cfg, overrides, f"{_where(cfg_file)} with --set")
     if cfg.get("normalize_reward") and not cfg.get("normalize"):
         raise ValueError(f"{_where(cfg_file)}: normalize_reward needs normalize: true")
     return run, cfg, cfg_file
@@ -375,8 +382,12 @@ def train(
     name: str | None = None,
     command: str | None = None,
     observer: str | None = None,
+    overrides: Mapping[str, Any] | Sequence[str] = (),
 ) -> Path:
     """Train (or resume, or extend) one agent; returns the run folder. See the module docstring.
+
+    ``overrides`` sets config keys over the file's: {dotted key: value}, or ``KEY=VALUE`` strings as
+    ``--set`` takes them (``agents.config.SET_HELP``).
 
     Defaults: ppo, residual over the proposed law, paper-0.1hz, 100,000 steps, seed 0. With
     ``resume=True`` the run's own settings (``metadata.json``) are used, ``timesteps`` defaults to
@@ -393,7 +404,9 @@ def train(
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
     given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
              "observer": observer}
-    run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path)
+    if not isinstance(overrides, Mapping):
+        overrides = parse_overrides(overrides)
+    run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path, overrides)
     timesteps, seed = run.timesteps, run.seeds[0]
     env_kwargs = _env_kwargs(run, cfg)
     normalize = bool(cfg.get("normalize"))
@@ -532,6 +545,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="seed of the networks, the envs and the scenario draws (default 0)")
     p.add_argument("--config", default=None, metavar="YAML",
                    help="hyperparameters (default agents/configs/<algo>_<env id>.yaml)")
+    add_config_options(p)
     p.add_argument("--out", default="runs/run", metavar="DIR", help="run folder (default runs/run)")
     p.add_argument("--name", default=None,
                    help="agent name in results (default: the run folder's name)")
@@ -552,7 +566,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = train(algo=args.algo, mode=args.mode, controller=args.controller, scenario=args.scenario,
                     timesteps=args.timesteps, seed=args.seed, config=args.config, out=args.out, resume=args.resume,
                     progress=not args.no_progress, name=args.name, command=shlex.join(["blf-train", *argv]),
-                    observer=args.observer)
+                    observer=args.observer, overrides=args.overrides)
     except ValueError as exc:
         print(f"blf-train: error: {exc}", file=sys.stderr)
         return 2

@@ -22,14 +22,15 @@ from typing import Sequence
 
 from blf_gym.io import atomic_write_text
 
+from .config import add_config_options, parse_overrides
 from .sweep import law_levels, main as sweep_main  # noqa: F401 - law_levels is re-exported
 
 __all__ = ["main", "sweep_file"]
 
 
 def sweep_file(configs: Sequence[Path], algo: str, mode: str, timesteps: int, seeds: Sequence[int],
-               scenario: str, jobs: int | None) -> dict:
-    """The grid sweep that blf-tune runs."""
+               scenario: str, jobs: int | None, overrides: Sequence[str] = ()) -> dict:
+    """The grid sweep that blf-tune runs; ``overrides`` (``--set KEY=VALUE``) change every candidate."""
     files = [str(Path(c).resolve()) for c in configs]
     spec = {"name": "tune", "base": files[0], "algo": algo, "mode": mode, "scenario": scenario,
             "timesteps": timesteps, "seeds": list(seeds), "search": "grid"}
@@ -39,6 +40,8 @@ def sweep_file(configs: Sequence[Path], algo: str, mode: str, timesteps: int, se
         spec["name"] = Path(files[0]).stem
     if jobs:
         spec["concurrency"] = jobs
+    if overrides:
+        spec["overrides"] = parse_overrides(overrides)
     return spec
 
 
@@ -61,6 +64,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="runs trained at the same time (default one per core)")
     p.add_argument("--address", default=None, metavar="ADDRESS",
                    help="an existing Ray cluster (default: a local Ray instance)")
+    add_config_options(p)
     return p
 
 
@@ -77,7 +81,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / "tune_sweep.yaml"
-    spec = sweep_file(args.configs, args.algo, args.mode, args.timesteps, args.seeds, args.scenario, args.jobs)
+    try:
+        spec = sweep_file(args.configs, args.algo, args.mode, args.timesteps, args.seeds, args.scenario, args.jobs,
+                          args.overrides)
+    except ValueError as exc:
+        print(f"blf-tune: error: {exc}", file=sys.stderr)
+        return 2
     atomic_write_text(path, yaml.safe_dump(spec, sort_keys=False))
     rest = ["--out", str(args.out)] + (["--address", args.address] if args.address else [])
     return sweep_main([str(path), *rest])

@@ -474,3 +474,29 @@ def test_report_windows_finds_where_an_agent_loses(tmp_path):
     assert "joint 3: agent MSE / law MSE = 0.250" in text
     (tmp_path / "results.json").write_text("{}")
     assert report_main([str(tmp_path / "results.json"), "--windows", "paper-0.1hz", "nobody"]) == 2
+
+
+def test_set_overrides_config_keys_from_the_command_line(tmp_path, capsys):
+    """--set KEY=VALUE changes the config's keys (nested ones by a dot), is checked like the file
+    (the key named), is recorded in the metadata, and cannot change a run on --resume."""
+    out = tmp_path / "run"
+    cfg = _tiny(tmp_path, "ppo", normalize=False)  # n_envs: 2, control_period 0.01
+    text = cfg.read_text()
+    base = ["--algo", "ppo", "--timesteps", "64", "--config", str(cfg), "--out", str(out), "--no-progress"]
+    for bad, msg in ((["bogus=1"], "unknown config key 'bogus'"), (["n_envs=0"], "n_envs must be an integer >= 1, got 0"),
+                     (["env.bogus=1"], "unknown env key(s) ['bogus']"), (["n_envs"], "expected KEY=VALUE")):
+        assert train_main([*base, "--set", *bad]) == 2
+        assert msg in capsys.readouterr().err
+    assert not out.exists()
+    sets = ["--set", "n_envs=1", "--set", "env.control_period=0.02", "--set", "note=from the command line"]
+    assert train_main([*base, *sets]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["config"]["n_envs"] == 1 and meta["config"]["note"] == "from the command line"
+    assert meta["config"]["env"]["control_period"] == 0.02 and meta["config"]["env"]["duration"] == 0.2
+    assert meta["env_kwargs"]["control_period"] == 0.02
+    assert cfg.read_text() == text  # the file itself is untouched
+    capsys.readouterr()
+    assert train_main([*base, "--resume", "--timesteps", "128", "--set", "n_envs=3"]) == 2
+    assert "--resume keeps the run's own config" in capsys.readouterr().err
+    assert train_main([*base, "--resume", "--timesteps", "128", *sets]) == 0  # the same values: no change
+    assert json.loads((out / "metadata.json").read_text())["timesteps"] >= 128

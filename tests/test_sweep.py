@@ -350,3 +350,25 @@ def test_blf_gym_and_the_env_never_import_ray():
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                        env={**os.environ, "PYTHONPATH": str(ROOT)})
     assert p.returncode == 0, p.stderr[-2000:]
+
+
+def test_set_on_the_command_line_joins_the_sweep_files_overrides():
+    """blf-sweep's and blf-tune's --set reach every trial's config, over the sweep file's own
+    overrides, and are checked like them."""
+    from agents.config import parse_overrides
+    from agents.sweep import load_sweep, trial_config
+    from agents.tune import sweep_file
+
+    spec = load_sweep(_spec(overrides={"eval_freq": 1024, "n_envs": 4}), ROOT,
+                      overrides=parse_overrides(["n_envs=2", "env.control_period=0.02"]))
+    cfg = trial_config(spec, {"hyperparams.learning_rate": 1e-4})
+    assert cfg["eval_freq"] == 1024 and cfg["n_envs"] == 2 and cfg["env"]["control_period"] == 0.02
+    assert cfg["hyperparams"]["learning_rate"] == 1e-4
+    with pytest.raises(ValueError, match="n_envs must be an integer >= 1"):
+        load_sweep(_spec(), ROOT, overrides=parse_overrides(["n_envs=0"]))
+    with pytest.raises(ValueError, match="both in overrides and in space"):
+        load_sweep(_spec(), ROOT, overrides=parse_overrides(["hyperparams.learning_rate=1e-4"]))
+    tuned = sweep_file([ROOT / "agents/configs/ppo_PlanarBLFResidual-v0.yaml"], "ppo", "residual", 100, [0],
+                       "randomized", None, ["n_envs=2"])
+    assert tuned["overrides"] == {"n_envs": 2}
+    assert trial_config(load_sweep(tuned, ROOT), {})["n_envs"] == 2
