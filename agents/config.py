@@ -8,7 +8,7 @@ Two parts, each declared once here:
 * :class:`TrainConfig`: how it trains, the keys of a config YAML (``agents/configs/*.yaml``).
   :func:`check_config` refuses an unknown key or a value of the wrong type, naming the file and
   the key. The ``env`` keys are the env's own arguments (:func:`env_keys`, read from
-  ``blf_gym.core.EnvCore``'s signature), less the ones a run sets itself.
+  ``blf_gym.envcore.EnvCore``'s signature), less the ones a run sets itself.
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from blf_gym import ENV_IDS
+from blf_gym.params import is_integer
 
 __all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "SET_HELP", "add_config_options",
            "apply_overrides", "check_config", "env_keys", "parse_overrides", "set_dotted", "shipped_config"]
@@ -85,14 +86,11 @@ def env_keys() -> tuple[str, ...]:
     :data:`RUN_SET_ENV_KEYS`."""
     import inspect
 
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
 
     return tuple(p for p in inspect.signature(EnvCore.__init__).parameters
                  if p != "self" and p not in RUN_SET_ENV_KEYS)
 
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
 
 
 def _type_error(where: str, key: str, want: str, v: Any) -> ValueError:
@@ -115,7 +113,7 @@ def check_config(cfg: Any, where: str) -> None:
             raise _type_error(where, key, "a string", v)
         if kind == "bool" and not isinstance(v, bool):
             raise _type_error(where, key, "true or false", v)
-        if kind == "count" and not (_is_int(v) and v >= 1):
+        if kind == "count" and not (is_integer(v) and v >= 1):
             raise _type_error(where, key, "an integer >= 1", v)
         if kind == "nonneg" and not (isinstance(v, (int, float)) and not isinstance(v, bool)
                                      and math.isfinite(v) and v >= 0):
@@ -236,9 +234,11 @@ class RunSpec:
             raise ValueError("the stress suite is held out: no training, tuning, seed choice or early stopping "
                              "may read it (blf-eval --suite stress scores on it); train on randomized or a preset")
         resolve_scenario(self.scenario)
-        if not (_is_int(self.timesteps) and self.timesteps >= 1):
+        if not (is_integer(self.timesteps) and self.timesteps >= 1):
             raise ValueError(f"timesteps must be an integer >= 1, got {self.timesteps!r}")
         seeds = list(self.seeds) if isinstance(self.seeds, (list, tuple)) else None
-        if not seeds or not all(_is_int(s) and s >= 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        if not seeds or not all(is_integer(s) and s >= 0 for s in seeds) or len(set(seeds)) != len(seeds):
+            if isinstance(self.seeds, (list, tuple)) and len(self.seeds) == 1:
+                raise ValueError(f"seed must be an integer >= 0, got {self.seeds[0]!r}")
             raise ValueError(f"seeds must be a non-empty list of distinct integers >= 0, got {self.seeds!r}")
         return dataclasses.replace(self, controller=controller)

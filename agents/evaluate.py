@@ -320,7 +320,7 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     ``model`` None is the proposed law alone (a zero residual, the agent's env set-up otherwise): its
     episodes advance :data:`LAW_HOLD_S` at a time (``EnvCore.hold``), each arm drawing the same noise
     as a stepped agent's, so the trajectories are those of a zero residual stepped period by period."""
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
 
     # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
     # the same env the loader checked the agent against

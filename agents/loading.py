@@ -81,7 +81,7 @@ def read_json_object(path: Path, what: str, hint: str = "") -> dict[str, Any]:
 def scoring_env_kwargs(env_kwargs: dict[str, Any]) -> dict[str, Any]:
     """The keyword arguments of the env blf-eval scores an agent in, from the metadata's
     ``env_kwargs``: those of :data:`SCORING_REPLACES` dropped, no reward terms (``reward_weights={}``)
-    and termination off. ``blf_gym.core.EnvCore(n, record=True, threads=..., **scoring_env_kwargs(kw))``
+    and termination off. ``blf_gym.envcore.EnvCore(n, record=True, threads=..., **scoring_env_kwargs(kw))``
     is ``agents.evaluate.evaluate_agent``'s env."""
     kw = {k: v for k, v in env_kwargs.items() if k not in SCORING_REPLACES}
     kw.update(reward_weights={}, terminate_on_violation=False)
@@ -110,7 +110,7 @@ def _field_in(message: str, keys: list[str]) -> str | None:
 
 def _check_metadata(meta: dict[str, Any], meta_path: Path) -> None:
     """The checks that need the metadata alone: name, mode, env_kwargs' type and keys."""
-    from blf_gym.core import check_env_kwargs
+    from blf_gym.envcore import check_env_kwargs
 
     from blf_gym import ENV_IDS
 
@@ -198,7 +198,7 @@ def _scoring_core(meta: dict[str, Any], meta_path: Path):
     single arm takes when its own build is not compiled, kept in memory and in numba's disk cache,
     so no second compile follows. (Only an agent run through another filter, blf-eval
     --residual-filter, needs a kernel besides this one.)"""
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
 
     kw = scoring_env_kwargs(meta["env_kwargs"])
     try:
@@ -215,7 +215,7 @@ def _check_spaces(model: Any, meta: dict[str, Any], meta_path: Path, model_path:
     import numpy as np
     from gymnasium import spaces
 
-    from blf_gym.core import observation_layout
+    from blf_gym.envcore import observation_layout
 
     from blf_gym import ENV_IDS
 

@@ -34,7 +34,7 @@ def oracle_rmse(scenarios, control_period: float = 0.01, oracle: bool = True,
                 residual_scale: float = 100.0) -> np.ndarray:
     """Pooled RMSE (deg, per joint) of the law plus the oracle residual (or a zero residual) over
     ``scenarios``, all stepped together in one batched env."""
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
     from blf_gym.dynamics import mass_matrix
     from blf_gym.metrics import summarize
 

@@ -62,8 +62,10 @@ from typing import Any, Callable, Mapping, Sequence
 import numpy as np
 
 from blf_gym.io import atomic_write_json, atomic_write_text
+from blf_gym.params import is_integer, is_real
 
-from .config import CONFIG_KEYS, RunSpec, add_config_options, check_config, env_keys, parse_overrides, set_dotted, shipped_config
+from .config import (CONFIG_KEYS, RunSpec, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
+                     shipped_config)
 from .evaluate import CURVE_GROUPS
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
@@ -134,12 +136,6 @@ def _err(where: str, msg: str) -> ValueError:
     return ValueError(f"{where}: {msg}")
 
 
-def _is_int(v: Any) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_num(v: Any) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
 
 
 def _check_space_key(key: str, where: str, searched: bool = True) -> None:
@@ -169,14 +165,14 @@ def _check_dist(key: str, spec: Any, search: str, where: str) -> None:
     (kind, arg), = spec.items()
     if kind in RAY_DISTS:
         n = RAY_DISTS[kind]
-        if not isinstance(arg, list) or len(arg) != n or not all(_is_num(a) for a in arg):
+        if not isinstance(arg, list) or len(arg) != n or not all(is_real(a) for a in arg):
             raise ValueError(f"{w}: {kind} takes a list of {n} numbers, got {arg!r}")
         if not arg[0] < arg[1]:
             raise ValueError(f"{w}: {kind} needs low < high, got {arg!r}")
         if kind.startswith("log") or kind == "qloguniform":
             if arg[0] <= 0:
                 raise ValueError(f"{w}: {kind} needs low > 0, got {arg!r}")
-        if "randint" in kind and not (_is_int(arg[0]) and _is_int(arg[1])):
+        if "randint" in kind and not (is_integer(arg[0]) and is_integer(arg[1])):
             raise ValueError(f"{w}: {kind} takes integers [low, high) (high excluded), got {arg!r}")
     elif kind in LIST_DISTS:
         if not isinstance(arg, list) or not arg:
@@ -184,7 +180,7 @@ def _check_dist(key: str, spec: Any, search: str, where: str) -> None:
     elif kind in OPTUNA_DISTS:
         if not isinstance(arg, dict) or not {"low", "high"} <= set(arg) or set(arg) - {"low", "high", "log", "step"}:
             raise ValueError(f"{w}: {kind} takes {{low, high, log (optional), step (optional)}}, got {arg!r}")
-        check = _is_int if kind == "int" else _is_num
+        check = is_integer if kind == "int" else is_real
         if not (check(arg["low"]) and check(arg["high"])) or not arg["low"] < arg["high"]:
             raise ValueError(f"{w}: {kind} needs {'integers' if kind == 'int' else 'numbers'} low < high, "
                              f"got {arg!r}")
@@ -274,14 +270,14 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         spec["num_samples"] = 1
     else:
         ns = spec["num_samples"]
-        if not _is_int(ns) or ns < 1:
+        if not is_integer(ns) or ns < 1:
             raise _err(where, f"num_samples must be an integer >= 1 for search: {spec['search']}, got {ns!r}")
-    if not _is_int(spec["search_seed"]) or spec["search_seed"] < 0:
+    if not is_integer(spec["search_seed"]) or spec["search_seed"] < 0:
         raise _err(where, f"search_seed must be an integer >= 0, got {spec['search_seed']!r}")
-    if spec["concurrency"] is not None and (not _is_int(spec["concurrency"]) or spec["concurrency"] < 1):
+    if spec["concurrency"] is not None and (not is_integer(spec["concurrency"]) or spec["concurrency"] < 1):
         raise _err(where, f"concurrency must be an integer >= 1, got {spec['concurrency']!r}")
     tb = spec["time_budget_s"]
-    if tb is not None and (not _is_num(tb) or not 0 < tb < float("inf")):
+    if tb is not None and (not is_real(tb) or not 0 < tb < float("inf")):
         raise _err(where, f"time_budget_s must be a number of seconds > 0 (or absent), got {tb!r}")
     if not isinstance(spec["overrides"], dict) or not isinstance(spec["space"], dict):
         raise _err(where, "overrides and space are mappings of dotted config keys")
@@ -303,9 +299,9 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         if bad:
             raise _err(where, f"unknown asha key(s) {bad}; accepted: ['grace_period', 'reduction_factor', 'brackets']")
         gp, rf = asha.setdefault("grace_period", max(1, spec["timesteps"] // 4)), asha.setdefault("reduction_factor", 2)
-        if not _is_int(gp) or not 1 <= gp <= spec["timesteps"]:
+        if not is_integer(gp) or not 1 <= gp <= spec["timesteps"]:
             raise _err(where, f"asha.grace_period must be an integer in [1, timesteps], got {gp!r}")
-        if not _is_num(rf) or rf <= 1:
+        if not is_real(rf) or rf <= 1:
             raise _err(where, f"asha.reduction_factor must be a number > 1, got {rf!r}")
         spec["scheduler"] = {"asha": asha}
 

@@ -216,9 +216,7 @@ def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | N
         given = _resume_settings(prior, given, meta_path)
         if given["mode"] == "plain":
             given["controller"] = None
-    seed = 0 if given["seed"] is None else given["seed"]
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
-        raise ValueError(f"seed must be an integer >= 0, got {seed!r}")
+    seed = 0 if given["seed"] is None else given["seed"]  # checked with the rest by RunSpec.checked
     if timesteps is None:
         timesteps = int(prior.get("timesteps_requested", 100_000)) if (resume and prior) else 100_000
     run = RunSpec(given["algo"] or "ppo", given["mode"] or "residual", given["controller"],

@@ -28,7 +28,7 @@ import numpy as np
 
 from blf_gym.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
 from blf_gym.bounds import BOUND_LEN, KA, KA_DDOT, KA_DOT, KB, KB_DDOT, KB_DOT
-from blf_gym.core import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout
+from blf_gym.observation import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout
 from blf_gym.reference import REFERENCE_SIGNALS
 from blf_gym.params import BoundParams
 

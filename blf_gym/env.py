@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .core import EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
+from .envcore import EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
 from .params import Scenario, check_int
 
 __all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_residual_controller"]
@@ -55,7 +55,7 @@ def _reward_text() -> str:
         f"the potential stays within +-{PHI_CAP:g}, and a violation costs {SCORE_REWARD.violation:g}, so "
         "every violating episode returns less than any other.", 96, initial_indent="    ", subsequent_indent="    ")
     second = textwrap.fill(
-        "``reward_weights={}`` (or a :class:`blf_gym.core.RewardWeights` / dict of its fields) gives the "
+        "``reward_weights={}`` (or a :class:`blf_gym.reward.RewardWeights` / dict of its fields) gives the "
         f"shaped reward, with field defaults {_weights_text(RewardWeights())}::", 96,
         initial_indent="    ", subsequent_indent="    ")
     from .reward import TERMS
@@ -193,7 +193,7 @@ class PlanarBLFEnv(gym.Env):
 
     def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
         """Keyword arguments are listed under *Arguments* above; their defaults live in
-        :class:`blf_gym.core.EnvCore`."""
+        :class:`blf_gym.envcore.EnvCore`."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"PlanarBLFEnv: render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")

@@ -1,6 +1,6 @@
 """Per-arm layouts of one kernel call's integer status and of the last applied signals, declared once.
 
-The kernel (:mod:`blf_gym.simulate`), the env (:mod:`blf_gym.core`) and the reward
+The kernel (:mod:`blf_gym.simulate`), the env (:mod:`blf_gym.envcore`) and the reward
 (:mod:`blf_gym.reward`) read their offsets from here.
 """
 

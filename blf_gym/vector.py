@@ -1,7 +1,7 @@
 """``PlanarBLFVectorEnv``: N arms in one compiled kernel call (``gym.make_vec``'s vector entry point).
 
 The arms are independent episodes of :class:`~blf_gym.env.PlanarBLFEnv`, computed by the same
-:class:`~blf_gym.core.EnvCore` and the same kernel, split over threads. Arm i reset with seed
+:class:`~blf_gym.envcore.EnvCore` and the same kernel, split over threads. Arm i reset with seed
 ``s + i`` is bit-identical to a single env reset with that seed.
 
 Autoreset follows Gymnasium's modes (``autoreset_mode``, default ``AutoresetMode.NEXT_STEP``, as
@@ -26,7 +26,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .core import EnvCore, check_env_kwargs, warn_if_oversubscribed
+from .envcore import EnvCore, check_env_kwargs, warn_if_oversubscribed
 from .params import check_int, is_integer
 
 __all__ = ["PlanarBLFVectorEnv", "default_threads", "make_residual_vector_env"]

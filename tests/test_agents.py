@@ -162,7 +162,7 @@ def test_a_config_s_env_keys_are_the_env_s_own_arguments():
 
     from agents.config import RUN_SET_ENV_KEYS, TrainConfig, env_keys
     from agents.config import CONFIG_DIR
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
 
     params = set(inspect.signature(EnvCore.__init__).parameters) - {"self"}
     assert set(env_keys()) == params - set(RUN_SET_ENV_KEYS) and set(RUN_SET_ENV_KEYS) <= params

@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 
 import blf_gym  # noqa: F401  (registers the ids)
 from blf_gym.registry import available_controllers
-from blf_gym.core import RewardWeights
+from blf_gym.envcore import RewardWeights
 from blf_gym.env import PlanarBLFEnv
 from blf_gym.params import DT_MIN, SimParams
 from blf_gym.scenarios import SAFE_RANGES, VARIATIONS
@@ -314,7 +314,7 @@ BAD_KWARGS = {
 def test_every_constructor_argument_has_a_bad_value_strategy():
     import inspect
 
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
 
     kwargs = {p for p in inspect.signature(EnvCore.__init__).parameters if p not in ("self", "single")}
     assert kwargs - {"num_envs"} | {"render_mode"} == set(BAD_KWARGS)

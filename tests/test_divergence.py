@@ -171,7 +171,7 @@ def test_a_real_violation_under_termination_is_not_called_a_divergence():
     # the stress suite's episodes that the proposed law violates at the default step (all 18 of the
     # 50 held-out ones, at 1.4-4.1 s), and a plain zero torque at the paper's 1 ms step (the arm
     # drifts out of its bounds without any instability): a violation, not a divergence
-    from blf_gym.core import EnvCore
+    from blf_gym.envcore import EnvCore
     from blf_gym.scenarios import STRESS_SEED_OFFSET, sample_suite
 
     seeds = [5, 7, 9, 10, 12, 13, 14, 16, 18, 20, 25, 31, 33, 38, 39, 42, 45, 49]

@@ -23,7 +23,7 @@ import pytest
 
 import blf_gym  # noqa: F401  (registers the ids)
 from blf_gym.bounds import error_bounds
-from blf_gym.core import RewardWeights, observation_layout
+from blf_gym.envcore import RewardWeights, observation_layout
 from blf_gym.metrics import violation_mask
 from blf_gym.params import preset
 from blf_gym.reference import joint_reference
@@ -723,7 +723,7 @@ def test_unknown_keyword_argument_is_a_value_error_listing_the_accepted_ones():
 
 
 def test_observation_index_matches_the_layout_table():
-    from blf_gym.core import observation_index
+    from blf_gym.envcore import observation_index
 
     rows = observation_layout(3, privileged=True)
     idx = observation_index(3)
@@ -782,3 +782,19 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
     with pytest.raises(ValueError, match="violation must be >= "):
         gym.make("PlanarBLFResidual-v0", reward_weights={"relative": True, "alive": 0.0, "violation": 1e5})
     assert RewardWeights(relative=True, relative_cap=10.0).alive == pytest.approx(10.0 + 0.01)
+
+
+def test_the_old_env_core_module_still_works_and_says_where_it_moved():
+    """blf_gym.core was renamed blf_gym.envcore (the observation table moved to blf_gym.observation);
+    the old name re-exports the same objects and warns."""
+    import subprocess
+    import sys
+
+    code = "import warnings; warnings.simplefilter('error'); import blf_gym.core"
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0 and "blf_gym.core is deprecated; import from blf_gym.envcore" in p.stderr
+    code = ("import warnings; warnings.simplefilter('ignore'); import blf_gym.core as c, blf_gym.envcore as e, "
+            "blf_gym.observation as o; assert c.EnvCore is e.EnvCore and c.RewardWeights is e.RewardWeights; "
+            "assert c.OBSERVATION is o.OBSERVATION and c.Entry is o.Entry and set(c.__all__) == set(e.__all__)")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr

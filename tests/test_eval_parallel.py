@@ -17,7 +17,7 @@ import pytest
 
 from agents.evaluate import main as eval_main
 from agents.loading import PRETRAINED
-from blf_gym.core import EnvCore
+from blf_gym.envcore import EnvCore
 from blf_gym.metrics import METRIC_CHANNELS
 from blf_gym.simulate import CHANNELS
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.core import MAX_ARMS, EnvCore
+from blf_gym.envcore import MAX_ARMS, EnvCore
 from blf_gym.env import PlanarBLFEnv
 from blf_gym.params import MAX_DURATION, SimParams
 

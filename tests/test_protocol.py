@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.core import observation_index
+from blf_gym.envcore import observation_index
 from blf_gym.metrics import summarize
 from blf_gym.params import preset
 from blf_gym.scenarios import (

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-import blf_gym.core as core_module
+import blf_gym.envcore as core_module
 
 
 def _episode_rewards(env_id, scenario, seed, scale, term=False, duration=2.5):

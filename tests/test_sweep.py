@@ -45,7 +45,7 @@ def _load(**kw):
     ({"colour": 1}, r"unknown sweep key\(s\) \['colour'\]"),
     ({"search": "bayes"}, "unknown search 'bayes'"),
     ({"seeds": [0, 0]}, "distinct integers"),
-    ({"seeds": [True]}, "seeds must be"),
+    ({"seeds": [True]}, "seeds? must be"),
     ({"timesteps": 1.5}, "timesteps must be an integer"),
     ({"num_samples": 0}, "num_samples must be an integer >= 1"),
     ({"search": "grid", "num_samples": None}, "grid takes only grid"),

@@ -1,0 +1,997 @@
+"""The batched environment logic shared by :class:`~blf_gym.env.PlanarBLFEnv` (one arm) and
+:class:`~blf_gym.vector.PlanarBLFVectorEnv` (N arms): scenario handling, the agent step over the
+compiled closed loop, observations, rewards and info. There is no other copy of this logic.
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from numba import njit
+
+from .bounds import BOUND_LEN, KA, KB
+from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
+from .registry import available_controllers, available_observers, make_controller, make_observer
+from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
+                     STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
+from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real
+from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
+                          groups, observation_index, observation_layout, observe_batch, optional_observations,
+                          plan_row)
+from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
+from .simulate import CHANNELS, ClosedLoop, divergence_message
+from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
+                     ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
+
+__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
+           "observation_index", "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
+
+
+
+
+MAX_ARMS = 65_536
+"""Most arms in one env core (``num_envs``). Every arm keeps its episode's arrays (the default score
+reward's reference, 0.7 MB per arm at 30 s); larger batches are refused at construction, not
+allocated (10**400 arms used to raise OverflowError)."""
+MAX_REFERENCE_BYTES = 8 * 2 ** 30
+"""Most memory the reward's per-episode references (the law's running error for the score term,
+its per-step error for the relative one) may take over all arms, bytes; beyond it the env refuses
+to be built and says which arguments to lower (``num_envs``, ``duration``) or which reward needs
+none (``reward_weights={}``, the shaped reward)."""
+
+# per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
+(EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP, EP_BREACHES,
+ EP_ASSUME_FAIL) = range(8)
+N_EP_INT = 8
+EP_SAMPLES, EP_E2_JOINT = range(2)
+
+
+@njit(cache=True, error_model="numpy")
+def _accumulate_episode(status, sums, ksteps, ep_int, ep_f):
+    """Add one kernel call's status and sums to the episode totals (one compiled call per step)."""
+    N = status.shape[0]
+    n = ep_f.shape[1] - EP_E2_JOINT
+    for b in range(N):
+        ep_int[b, EP_VIOL_STEPS] += status[b, ST_VIOL_STEPS]
+        if ep_int[b, EP_FIRST_VIOL] < 0 and status[b, ST_FIRST_VIOL] >= 0:
+            ep_int[b, EP_FIRST_VIOL] = status[b, ST_FIRST_VIOL]
+        ep_int[b, EP_SAT_STEPS] += status[b, ST_SAT_STEPS]
+        ep_int[b, EP_VIOL_SAMPLES] += status[b, ST_VIOL_SAMPLES]
+        ep_int[b, EP_BREACHES] += status[b, ST_FILTER_BREACHES]
+        ep_int[b, EP_ASSUME_FAIL] += status[b, ST_ASSUMPTION_FAILURES]
+        if ep_int[b, EP_DIV_CODE] == 0 and status[b, ST_DIVERGED] != 0:
+            ep_int[b, EP_DIV_CODE] = status[b, ST_DIVERGED]
+            ep_int[b, EP_DIV_STEP] = ksteps[b]
+        ep_f[b, EP_SAMPLES] += sums[b, SUM_SAMPLES]
+        for j in range(n):
+            ep_f[b, EP_E2_JOINT + j] += sums[b, SUM_E2_JOINT + j]
+
+
+@njit(cache=True, error_model="numpy")
+def _clip_finite(a):
+    """Clip ``a`` (N, n) to [-1, 1] in place; False if any entry is NaN or infinite."""
+    for b in range(a.shape[0]):
+        for j in range(a.shape[1]):
+            v = a[b, j]
+            if not np.isfinite(v):
+                return False
+            a[b, j] = min(max(v, -1.0), 1.0)
+    return True
+
+
+_WARNED: list[bool] = []
+
+
+def warn_if_oversubscribed(env_threads: int, owner: str) -> None:
+    """Once per process: if torch is already imported and its threads plus the env's exceed the
+    cores, say so, with the fix. Torch's default (one thread per core) beside the env slowed SB3's
+    PPO through ``gym.make`` from about 1,300-1,600 to 40-280 steps/s on a loaded 2-core machine
+    (docs/conventions.md, "Threads")."""
+    import os
+    import sys
+
+    torch = sys.modules.get("torch")
+    cpus = os.cpu_count() or 1
+    if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
+        return
+    t = int(torch.get_num_threads())
+    if t > max(1, cpus - env_threads):  # torch has more threads than the cores the env leaves it
+        import gymnasium as gym
+
+        _WARNED.append(True)
+        gym.logger.warn(
+            f"{owner}: torch uses {t} threads beside the env's {env_threads} on {cpus} cores; a "
+            f"training loop slows down when they compete. Call torch.set_num_threads({max(1, cpus - env_threads)}) "
+            "(or set OMP_NUM_THREADS) before training, or pass threads= to the env")
+
+
+def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
+    """ValueError naming any keyword argument the env does not know, with the accepted ones."""
+    import inspect
+
+    accepted = [p for p in inspect.signature(EnvCore.__init__).parameters
+                if p not in ("self", "num_envs", "single")]
+    unknown = sorted(set(kwargs) - set(accepted))
+    if unknown:
+        raise ValueError(f"unknown argument(s) {unknown} for PlanarBLF; accepted: {accepted}")
+
+
+LAW_CHUNK = 200
+"""Most 1 ms samples of the score term's reference law simulated in one go once a run has grown
+(it starts with what the episode's first step needs and doubles): about 15 agent steps' worth of
+simulation at the default 10 ms. The rewards do not depend on it: the running sums keep the
+1000-sample grouping they have always had."""
+
+
+class _LawRun:
+    """The score term's reference law for a group of arms reset together: a ClosedLoop of the
+    distinct noise-free scenarios, advanced :data:`LAW_CHUNK` samples at a time, with each row's
+    running sum of e1^2. ``arms[r]`` holds the env arms that read row r (an arm leaves when it is
+    reset). The running sum is grouped in blocks of 1000 samples from the episode's start (within a
+    block, a sequential sum from the block's start; then the total at the block's start added), so
+    the values are the same to the bit whatever the chunk size."""
+
+    def __init__(self, loop: ClosedLoop, keys: list, arms: list, samples: int, n: int) -> None:
+        self.loop = loop
+        self.keys = keys
+        self.arms = [set(a) for a in arms]
+        self.samples = samples
+        self.h = 0
+        rows = loop.N
+        self._inner = np.zeros((rows, n))  # sum since the current 1000-sample block began
+        self._acc = np.zeros((rows, n))    # the running sum at that block's start
+        self._e1 = CHANNELS.index("e1")
+
+    def restart(self, keys: list, arms: list) -> None:
+        """Reuse this run's loop (same number of rows) for new scenarios and arms, from the start."""
+        self.loop.set_scenarios(keys)
+        self.keys = keys
+        self.arms = [set(a) for a in arms]
+        self.h = 0
+        self._inner[:] = 0.0
+        self._acc[:] = 0.0
+
+    def detach(self, i: int) -> None:
+        for a in self.arms:
+            a.discard(i)
+
+    def advance(self, want: int = LAW_CHUNK) -> tuple[int, int, np.ndarray]:
+        """Simulate at least ``want`` more samples (within the block of 1000 and the episode), and at
+        least as many as so far up to :data:`LAW_CHUNK` (a run grows geometrically: an episode that
+        ends after a step or two pays for those steps only); return (h0, h1, the running sums of
+        samples h0..h1-1 per row, (rows, h1 - h0, n))."""
+        h0 = self.h
+        m = min(max(want, min(h0, LAW_CHUNK)), self.samples - h0, 1000 - h0 % 1000)
+        rec, nrec, _ = self.loop.advance(m * self.loop.steps_per_sample, record_samples=m)
+        e2 = rec[:, :m, self._e1, :] ** 2
+        for r in range(e2.shape[0]):
+            e2[r, nrec[r]:] = np.inf  # the law stopped (it diverged): its error counts as unbounded
+        e2[~np.isfinite(e2)] = np.inf
+        if h0 % 1000 == 0:
+            self._acc = self._inner + self._acc if h0 else self._acc
+            local = np.cumsum(e2, axis=1)
+        else:
+            local = np.cumsum(np.concatenate([self._inner[:, None, :], e2], axis=1), axis=1)[:, 1:]
+        self._inner = local[:, -1].copy()
+        self.h = h0 + m
+        return h0, self.h, local + self._acc[:, None, :]
+
+
+class _Record:
+    """The 1 ms samples of N arms' current episodes, kept for :meth:`EnvCore.trajectory`.
+
+    Each agent step has a slab: the C-contiguous (N, m, channels, n) array that the kernel writes
+    the step's samples into, so recording copies nothing. Arm i's episode is the slabs from
+    ``start[i]`` on, with ``nrec[j, i]`` samples in slab j (all m until the arm stops). Slabs are
+    allocated for ``steps`` agent steps at a time; the system gives their pages only once they are
+    written. When they run out, the slabs that no episode reads any more are dropped, and the store
+    grows only if there are none."""
+
+    def __init__(self, N: int, m: int, n: int, steps: int, channels: int = len(CHANNELS)) -> None:
+        self.shape = (N, m, channels, n)
+        self.steps = max(1, steps)
+        self._clear()
+
+    def _clear(self) -> None:
+        self.buf = np.empty((0, *self.shape))
+        self.nrec = np.zeros((0, self.shape[0]), dtype=np.int64)
+        self.pos = 0
+        self.start = np.zeros(self.shape[0], dtype=np.int64)
+
+    def slab(self) -> np.ndarray:
+        """The array the next step writes into."""
+        if self.pos == len(self.buf):
+            keep = int(self.start.min())
+            k = self.pos - keep
+            buf = np.empty((max(self.steps, 2 * k), *self.shape))
+            nrec = np.zeros((len(buf), self.shape[0]), dtype=np.int64)
+            buf[:k] = self.buf[keep:self.pos]
+            nrec[:k] = self.nrec[keep:self.pos]
+            self.buf, self.nrec, self.pos = buf, nrec, k
+            self.start -= keep
+        return self.buf[self.pos]
+
+    def commit(self, nrec: np.ndarray) -> None:
+        """The slab of :meth:`slab` holds ``nrec[i]`` samples of arm i."""
+        self.nrec[self.pos] = nrec
+        self.pos += 1
+
+    def restart(self, idx: Sequence[int]) -> None:
+        """Arms ``idx`` begin a new episode with the next step."""
+        self.start[list(idx)] = self.pos
+
+    def samples(self, i: int, release: bool = False) -> np.ndarray:
+        """Arm i's samples so far, (samples, channels, n): a copy, except with one arm and no partial
+        step, where it is a view of the store (copy out what is kept). ``release`` forgets them (the
+        arm's later steps are kept); the memory goes once no arm's episode reads those slabs."""
+        s = int(self.start[i])
+        rows, k = self.buf[s:self.pos, i], self.nrec[s:self.pos, i]
+        m = self.shape[1]
+        if bool((k == m).all()):
+            out = rows.reshape(-1, *self.shape[2:])  # a copy when N > 1: the slabs interleave the arms
+        else:
+            out = rows[np.arange(m)[None, :] < k[:, None]]
+        if release:
+            self.start[i] = self.pos
+            if bool((self.start == self.pos).all()):
+                self._clear()
+        return out
+
+
+def _record_channels(o: str, record_channels: Any) -> tuple[str, ...]:
+    """The channels a recording env keeps (None: all of :data:`CHANNELS`), 't' always among them;
+    ValueError naming the argument otherwise."""
+    if record_channels is None:
+        return CHANNELS
+    try:
+        names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
+    except TypeError:  # not a name nor a sequence of names
+        names = (record_channels,)
+    if len(set(map(repr, names))) != len(names) or any(not isinstance(c, str) or c not in CHANNELS for c in names):
+        raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
+                         f"all; 't' is always kept), got {record_channels!r}")
+    return names if "t" in names else ("t", *names)
+
+
+def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observation_extras: Any,
+                 variations: Any, reward_weights: Any, residual_filter: Any) -> None:
+    """The env's arguments that name things (a scenario, blocks, observation entries, knobs, reward
+    weights, a filter) are of a kind it accepts; ValueError naming the argument otherwise."""
+    if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
+        raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
+                         f"blf_gym.params.Scenario, got {scenario!r}")
+    if not (controller is None or isinstance(controller, (str, Controller))):
+        raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
+                         f"blf_gym.blocks.Controller, got {controller!r}")
+    if not isinstance(observer, (str, Observer)):
+        raise ValueError(f"{o} observer must be one of {available_observers()} or a "
+                         f"blf_gym.blocks.Observer, got {observer!r}")
+    optional = optional_observations()
+    if (isinstance(observation_extras, (str, bytes)) or not isinstance(observation_extras, Sequence)
+            or not all(isinstance(g, str) for g in observation_extras)):
+        raise ValueError(f"{o} observation_extras must be a sequence of names from {optional}, "
+                         f"got {observation_extras!r}")
+    bad = [g for g in observation_extras if g not in optional]
+    if bad or len(set(observation_extras)) != len(observation_extras):
+        raise ValueError(f"{o} observation_extras must name each optional entry at most once, from "
+                         f"{optional}; got {list(observation_extras)!r}")
+    if not (variations is None or isinstance(variations, Mapping)):
+        raise ValueError(f"{o} variations must be None or a mapping (dict) from names in "
+                         f"{list(VARIATIONS)} to numbers, got {variations!r}")
+    if not (reward_weights is None or isinstance(reward_weights, (RewardWeights, Mapping))):
+        raise ValueError(f"{o} reward_weights must be None, a blf_gym.reward.RewardWeights or a mapping "
+                         f"(dict) of its fields {[f.name for f in fields(RewardWeights)]}, got {reward_weights!r}")
+    if isinstance(reward_weights, Mapping):
+        names = [f.name for f in fields(RewardWeights)]
+        unknown = [k for k in reward_weights if k not in names]
+        if unknown:
+            raise ValueError(f"{o} reward_weights has unknown field(s) {sorted(unknown, key=repr)}; "
+                             f"accepted: {names}")
+    if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
+        raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
+                         f"(e.g. 'barrier') or a blf_gym.blocks.ResidualFilter, got {residual_filter!r}")
+
+
+class EnvCore:
+    """N arms of the PlanarBLF task stepped together by one compiled kernel call.
+
+    This is the one place the environment's defaults live; :class:`~blf_gym.env.PlanarBLFEnv`
+    and :class:`~blf_gym.vector.PlanarBLFVectorEnv` pass their keyword arguments through.
+    """
+
+    def __init__(
+        self,
+        num_envs: int,
+        scenario: "str | Scenario" = "paper-0.1hz",
+        controller: "str | Controller | None" = None,
+        observer: "str | Observer" = "leso",
+        residual_scale: float = 2.0,
+        control_period: float = 0.01,
+        privileged: bool = False,
+        terminate_on_violation: bool = True,
+        angle_noise_std: float | None = None,
+        duration: float | None = None,
+        max_torque: float | None = None,
+        dt: float | None = None,
+        variations: Mapping[str, Any] | None = None,
+        reward_weights: RewardWeights | Mapping[str, float] | None = None,
+        observation_extras: Sequence[str] = (),
+        residual_filter: str | None = None,
+        threads: int | None = None,
+        record: bool = False,
+        record_channels: Sequence[str] | None = None,
+        single: bool = False,
+    ) -> None:
+        # every argument is checked here, before anything is built: ValueError naming it and
+        # what it accepts (bools are not numbers, strings are neither)
+        self.single = check_bool("EnvCore:", "single", single)
+        o = self.owner = "PlanarBLFEnv:" if self.single else "PlanarBLFVectorEnv:"
+        self.num_envs = check_int(o, "num_envs", num_envs, lo=1, hi=MAX_ARMS,
+                                  hint=" (blf_gym.envcore.MAX_ARMS; each arm keeps per-episode arrays)")
+        self.record = check_bool(o, "record", record)
+        self.record_channels = _record_channels(o, record_channels)
+        if self.single and self.num_envs != 1:
+            raise ValueError("a single env core has num_envs == 1")
+        _check_kinds(o, scenario, controller, observer, observation_extras, variations, reward_weights,
+                     residual_filter)
+        residual_scale = check_real(o, "residual_scale", residual_scale, lo=0.0, lo_open=True, unit="N m")
+        control_period = check_real(o, "control_period", control_period, lo=0.0, lo_open=True, unit="s")
+        privileged = check_bool(o, "privileged", privileged)
+        terminate_on_violation = check_bool(o, "terminate_on_violation", terminate_on_violation)
+        angle_noise_std = check_real(o, "angle_noise_std", angle_noise_std, lo=0.0, unit="rad", none_ok=True)
+        duration = check_real(o, "duration", duration, lo=0.0, hi=MAX_DURATION, lo_open=True, unit="s", none_ok=True,
+                              hint=" (blf_gym.params.MAX_DURATION: an episode's signals and the score reward's "
+                                   "reference are kept per 1 ms sample)")
+        max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
+        dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
+                        hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
+        threads = check_int(o, "threads", threads, lo=1, none_ok=True)
+        self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
+        self._set_period(control_period)
+        self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
+        self.observer = make_observer(observer)
+        self.residual = self.controller is not NO_CONTROLLER
+        self.residual_scale = float(residual_scale)
+        self.privileged = bool(privileged)
+        self.terminate_on_violation = bool(terminate_on_violation)
+        self._set_reward(reward_weights)
+        self.n = self.base.arm.n_links
+        self._build_loop(residual_filter, threads)
+        self._set_observation(observation_extras)
+        self._allocate()
+        self._threads = threads
+
+    def _set_scenario(self, scenario: "str | Scenario", duration: float | None, max_torque: float | None,
+                      dt: float | None, variations: Mapping[str, Any] | None, angle_noise_std: float | None) -> None:
+        """The base scenario (a preset, or a suite's base) with the simulation overrides and the
+        variations applied, and the suite to draw from (None: the base itself every episode)."""
+        base, suite = resolve_scenario(scenario)
+        sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
+                    if v is not None}
+        if sim_over:
+            base = replace(base, sim=replace(base.sim, **sim_over))
+        self.variations = check_variations({} if variations is None else variations, base.arm.n_links)
+        if angle_noise_std is not None:
+            self.variations["angle_noise_std"] = angle_noise_std
+        # validated now; re-applied after every suite draw so they override it
+        self.base = apply_variations(base, self.variations) if self.variations else base
+        self.suite = suite
+        self.sim = self.base.sim
+
+    def _set_period(self, control_period: float) -> None:
+        """The agent's period as whole integration steps and samples, and the episode's steps."""
+        o = self.owner
+        # agent period (docs/model.md section 6): a whole number of integration steps that is either a
+        # whole number of 1 ms samples or divides 1 ms (down to a single step, for sampled
+        # controllers such as the baseline policies)
+        control_period = check_real(o, "control_period", control_period, lo=0.0, hi=self.sim.duration,
+                                    lo_open=True, unit="s", hint=" (at most the duration)")
+        steps = control_period / self.sim.dt
+        sps = self.sim.steps_per_sample
+        whole = abs(steps - round(steps)) <= 1e-9 * max(steps, 1.0) and round(steps) >= 1
+        steps_i = int(round(steps))
+        if not whole or (steps_i % sps and sps % steps_i):
+            raise ValueError(
+                f"{o} control_period must be a whole multiple of the {self.sim.sample_period} s sample "
+                f"period (e.g. 0.002, 0.005, 0.01) or divide it into whole integration steps of "
+                f"{self.sim.dt} s (e.g. 1e-4, 5e-4), got {control_period!r}")
+        self.control_period = float(control_period)
+        self.steps_per_period = steps_i
+        self.samples_per_period = max(1, steps_i // sps)
+        if self.sim.n_steps % self.steps_per_period:
+            raise ValueError(
+                f"{o} duration ({self.sim.duration} s) must be a whole number of control periods "
+                f"({self.control_period} s)")
+        self.max_episode_steps = self.sim.n_steps // self.steps_per_period
+
+    def _set_reward(self, reward_weights: RewardWeights | Mapping[str, float] | None) -> None:
+        """The reward's weights (default: the score reward), checked against the episode's length
+        and against the memory its reference to the law would take."""
+        o = self.owner
+        if reward_weights is None:
+            reward_weights = SCORE_REWARD
+        elif not isinstance(reward_weights, RewardWeights):
+            reward_weights = RewardWeights(**dict(reward_weights))
+        reward_weights.check_episode(self.max_episode_steps)
+        self.weights = reward_weights
+        self._wvec = reward_weights.pack(self.terminate_on_violation)
+        per_arm = 8 * self.base.arm.n_links * ((self.sim.n_samples if reward_weights.score > 0 else 0)
+                                               + (self.max_episode_steps if reward_weights.relative else 0))
+        if per_arm * self.num_envs > MAX_REFERENCE_BYTES:
+            raise ValueError(
+                f"{o} num_envs={self.num_envs} arms of {self.sim.duration:g} s episodes would need "
+                f"{per_arm * self.num_envs / 2 ** 30:.1f} GiB for the reward's reference to the law "
+                f"(blf_gym.envcore.MAX_REFERENCE_BYTES is {MAX_REFERENCE_BYTES / 2 ** 30:g} GiB); use fewer arms, "
+                "shorter episodes, or reward_weights={} (the shaped reward, which needs none)")
+
+    def _build_loop(self, residual_filter: "str | ResidualFilter | None", threads: int | None) -> None:
+        """The compiled closed loop of the arms (the law, its filter, the observer), and where its
+        outputs sit in the loop's last-signal columns."""
+        o = self.owner
+        self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
+        if residual_filter is not None and not self.residual:
+            # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
+            inner, plain = make_controller("proposed"), True
+        else:
+            inner, plain = self.controller, False
+        if residual_filter is not None and not inner.filters:
+            raise ValueError(f"{o} residual_filter={residual_filter!r}: the {inner.name!r} law ships no residual "
+                             "filter (the proposed law has 'barrier')")
+        try:
+            self.loop = ClosedLoop([self.base] * self.num_envs, inner, self.observer, threads=threads,
+                                   residual_filter=residual_filter, plain=plain)
+        except ValueError as exc:
+            raise ValueError(f"{o} {exc}") from None
+        self._filter_slices = [(name, slice(N_LAST * self.n + self.loop.connection.n_out + off,
+                                            N_LAST * self.n + self.loop.connection.n_out + off + m))
+                               for name, (off, m) in self.loop.connection.fout_offsets.items()]
+        n = self.n
+        self._last_slices = tuple(slice(c * n, (c + 1) * n) for c in (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT))
+        # the law's outputs besides u_law (already info["u_law"]), for info["controller_outputs"]
+        self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
+                            for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
+
+    def _set_observation(self, observation_extras: Sequence[str]) -> None:
+        """The observation's layout, its box and the compiled filler's plan: each row of
+        :data:`~blf_gym.observation.OBSERVATION` in use, its source resolved against the blocks."""
+        self.observation_extras = tuple(observation_extras)
+        n, conn = self.n, self.loop.connection
+        plan, scale, at = [], [], 0
+        for e in groups(self.privileged, self.observation_extras):
+            try:
+                frm, col, m = plan_row(e, n, conn.observer_signal, conn.out_offsets.get, N_LAST * n)
+            except LookupError:
+                kind, _, name = e.source.partition(":")
+                block = (f"observer {self.observer.name!r} does not provide (its states: {list(self.observer.states)})"
+                         if kind == "observer" else f"controller {self.controller.name!r} does not provide "
+                         f"(its outputs: {list(conn.out_offsets)})")
+                what = f"{name!r}" if name == e.group else f"{e.source!r} (entry {e.group!r})"
+                raise ValueError(f"{self.owner} the observation reads {what}, which {block}") from None
+            plan.append((frm, col, m, at))
+            scale.append(e.scale)
+            at += m
+        self._plan = np.array(plan, dtype=np.int64).reshape(-1, 4)
+        self._plan_scale = np.array(scale, dtype=np.float64)
+        layout = observation_layout(n, self.privileged, self.observation_extras)
+        self.obs_dim = len(layout)
+        self._box64 = (np.array([r[2] for r in layout]), np.array([r[3] for r in layout]))
+        self.obs_low = self._box64[0].astype(np.float32)
+        self.obs_high = self._box64[1].astype(np.float32)
+
+    def _allocate(self) -> None:
+        """The per-arm arrays of the episodes: scenarios, generators, counters, the record, the
+        episode's sums and the reward's reference to the law."""
+        N, n = self.num_envs, self.n
+        self.scenarios: list[Scenario] = [self.base] * N
+        self.rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(N)]
+        self.steps = np.zeros(N, dtype=np.int64)
+        self.done = np.zeros(N, dtype=bool)
+        self._ref = np.zeros((N, 3 * n))
+        self._bnd = np.zeros((N, BOUND_LEN))
+        self._obs_noise = np.zeros((N, n))
+        self._record = (_Record(N, self.samples_per_period, n, self.max_episode_steps, len(self.record_channels))
+                        if self.record else None)
+        # with some channels recorded, the kernel writes a step's samples here and they are copied out
+        self._rec_all = (np.empty((N, self.samples_per_period, len(CHANNELS), n))
+                         if self.record and self.record_channels != CHANNELS else None)
+        # the recorded channels as runs of consecutive ones: [first in the record, first in CHANNELS, count]
+        self._rec_runs: list[list[int]] = []
+        for d, c in enumerate(CHANNELS.index(name) for name in self.record_channels):
+            if self._rec_runs and sum(self._rec_runs[-1][1:]) == c:
+                self._rec_runs[-1][2] += 1
+            else:
+                self._rec_runs.append([d, c, 1])
+        self._ep_int = np.zeros((N, N_EP_INT), dtype=np.int64)
+        self._ep_int[:, EP_FIRST_VIOL] = -1
+        self._ep_f = np.zeros((N, EP_E2_JOINT + n))
+        self._durations = np.zeros(N)
+        self._umax = np.zeros(N)
+        self._law_e2 = np.ones((N, n))
+        self._law_steps = np.zeros((N, self.max_episode_steps if self.weights.relative else 0, n))
+        self._stds = np.zeros(N)
+        self._no_base = np.zeros((N, n))
+        self._noisy: list[int] = []
+        self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
+        # the score term: the law's cumulative e1^2 per 1 ms sample, and each arm's potential
+        self._score_w = float(self.weights.score)
+        self._law_cum = np.zeros((N, self.base.sim.n_samples if self._score_w > 0 else 0, n))
+        self._cum_cache: dict[Scenario, np.ndarray] = {}
+        self._law_run: list[_LawRun | None] = [None] * N  # each arm's lazily extended reference run
+        self._law_h = np.zeros(N, dtype=np.int64)  # samples of _law_cum filled so far, per arm
+        self._law_partial = False  # some arm's reference is not complete yet (else a step checks nothing)
+        self._ref_law: Controller | None = None
+        self._idle_runs: list[_LawRun] = []  # reference runs whose loops a later reset may reuse
+        self._phi = np.zeros(N)
+        self._score_term = np.zeros(N)
+
+
+    # ------------------------------------------------------------------ reset
+    def check_options(self, options: Any) -> dict[str, Any]:
+        """``reset(options=...)`` validated: None or a mapping of :data:`VARIATIONS` knobs, each
+        inside its safe range (ValueError naming the option otherwise); a normalized copy."""
+        if options is None:
+            return {}
+        return check_variations(options, self.n, kind="reset option")
+
+    def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
+        """The episode's scenario: the suite draw (if any), then option variations."""
+        sc = self.base
+        if self.suite:
+            sc = sample_suite(rng, self.base, self.suite)
+            if self.variations:
+                sc = apply_variations(sc, self.variations)
+        if options:
+            sc = apply_variations(sc, options)  # validates them (reset_envs checked the type)
+        return sc
+
+    def reset_envs(self, idx: Sequence[int], options: Mapping[str, Any] | None = None,
+                   scenarios: Sequence[Scenario] | None = None) -> None:
+        """Reset the arms ``idx``: each draws its scenario (suite, variations, ``options``), or
+        takes the given ``scenarios`` as they are (evaluation on fixed scenarios)."""
+        if scenarios is not None and len(scenarios) != len(idx):
+            raise ValueError("one scenario per reset arm is required")
+        options = self.check_options(options)
+        scs = list(scenarios) if scenarios is not None else [self.scenario_for(self.rngs[i], options) for i in idx]
+        for i, sc in zip(idx, scs):
+            self.scenarios[i] = sc
+            self._durations[i] = sc.sim.duration
+            self._umax[i] = sc.sim.max_torque
+            self._stds[i] = sc.angle_noise_std
+        self._noisy = [int(i) for i in np.flatnonzero(self._stds > 0)]
+        self.loop.set_scenarios(scs, which=list(idx))
+        if self.weights.relative:
+            self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
+        if self._score_w > 0:
+            self._start_law(idx, scs)
+        if self._record is not None:
+            self._record.restart(idx)
+        for i in idx:
+            self._phi[i] = 0.0
+            self.steps[i] = 0
+            self.done[i] = False
+            self._ep_int[i] = 0
+            self._ep_int[i, EP_FIRST_VIOL] = -1
+            self._ep_f[i] = 0.0
+
+    def _reference_runs(self, scenarios: Sequence[Scenario], cache: Mapping[Scenario, Any]):
+        """The reference law's runs that ``scenarios`` need: (each scenario without noise, the
+        distinct ones not in ``cache``, a ClosedLoop of the law over those or None). The law is the
+        inner controller in residual mode, the proposed law in plain mode."""
+        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
+        todo = list(dict.fromkeys(k for k in keys if k not in cache))
+        if not todo:
+            return keys, todo, None
+        ref = self._reference_law()
+        return keys, todo, ClosedLoop(todo, ref, self.observer, threads=self._threads)
+
+    def law_level(self, scenarios: Sequence[Scenario]) -> tuple[np.ndarray, np.ndarray]:
+        """The reference law alone on each scenario, without noise (see
+        ``RewardWeights.relative``): each joint's mean of e1^2 (rad^2) over the whole episode,
+        (len(scenarios), n), and its mean over each agent step's 1 ms samples,
+        (len(scenarios), max_episode_steps, n). Each distinct scenario is simulated once."""
+        keys, todo, loop = self._reference_runs(scenarios, self._law_cache)
+        done: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
+        if loop is not None:
+            per = np.zeros((len(todo), self.max_episode_steps, self.n))
+            total = np.zeros((len(todo), self.n))
+            samples = np.zeros((len(todo), 1))
+            for j in range(self.max_episode_steps):
+                loop.advance(self.steps_per_period, record_samples=0)
+                e2 = loop.sums[:, SUM_E2_JOINT : SUM_E2_JOINT + self.n]
+                ns = loop.sums[:, SUM_SAMPLES : SUM_SAMPLES + 1]
+                per[:, j] = e2 / np.maximum(ns, 1.0)
+                total += e2
+                samples += ns
+            # a floor keeps the ratio finite for a law that tracks perfectly
+            level = np.maximum(total / np.maximum(samples, 1.0), 1e-16)
+            for i, sc in enumerate(todo):
+                done[sc] = (level[i], per[i])
+                if len(self._law_cache) < 64:
+                    self._law_cache[sc] = (level[i].copy(), per[i].copy())
+        mean = np.empty((len(scenarios), self.n))
+        steps = np.empty((len(scenarios), self.max_episode_steps, self.n))
+        for k, sc in enumerate(keys):
+            mean[k], steps[k] = done[sc] if sc in done else self._law_cache[sc]
+        return mean, steps
+
+    def with_episode_length(self, spec: Any) -> Any:
+        """``spec`` (an EnvSpec, or None) with ``max_episode_steps`` set to this env's episode length
+        in agent steps when it names none: what the single and vector envs report to wrappers."""
+        if spec is None or spec.max_episode_steps is not None:
+            return spec
+        return replace(spec, max_episode_steps=int(self.max_episode_steps))
+
+    def _reference_law(self) -> Controller:
+        """The reward's reference law: the inner controller in residual mode, the proposed law in
+        plain mode (made once: a registry look-up reads the installed packages' entry points)."""
+        if self._ref_law is None:
+            self._ref_law = self.controller if self.residual else make_controller("proposed")
+        return self._ref_law
+
+    def _start_law(self, idx: Sequence[int], scenarios: Sequence[Scenario]) -> None:
+        """Start the score term's reference for the reset arms ``idx``: the reference law alone on
+        each one's scenario without noise (as :meth:`law_level`), whose running sums of e1^2 per
+        joint fill ``_law_cum`` lazily, as the episode reaches them (:meth:`_extend_law`, in chunks
+        that double up to :data:`LAW_CHUNK` samples). With a suite, a reset simulates nothing (it
+        used to simulate the whole episode, 0.3-0.6 s per new scenario); a fixed scenario's reference
+        is simulated whole at its first reset and cached; a cached scenario costs nothing."""
+        S = self._law_cum.shape[1]
+        keys = [replace(sc, angle_noise_std=0.0) for sc in scenarios]
+        todo: dict[Scenario, list[int]] = {}
+        for i, key in zip(idx, keys):
+            old = self._law_run[i]
+            if old is not None:
+                old.detach(i)
+            hit = self._cum_cache.get(key)
+            if hit is not None:
+                self._law_cum[i] = hit
+                self._law_h[i] = S
+                self._law_run[i] = None
+            else:
+                todo.setdefault(key, []).append(int(i))
+        if not todo:
+            self._law_partial = bool((self._law_h < S).any())
+            return
+        run = next((r for r in self._idle_runs if r.loop.N == len(todo) and not any(r.arms)), None)
+        if run is not None:  # a finished or abandoned run of the same size: its loop is reused
+            run.restart(list(todo), list(todo.values()))
+        else:
+            run = _LawRun(ClosedLoop(list(todo), self._reference_law(), self.observer, threads=self._threads),
+                          list(todo), list(todo.values()), S, self.n)
+            if len(self._idle_runs) < 4:
+                self._idle_runs.append(run)
+        for row in run.arms:
+            for i in row:
+                self._law_run[i] = run
+                self._law_h[i] = 0
+        if not self.suite:
+            # a fixed scenario repeats: its reference is simulated whole once, then served from the
+            # cache, so its steps carry none of it (a suite draws a new scenario at every reset, and
+            # there the reference comes lazily, with the episode)
+            while run.h < S:
+                self._extend_law(run, LAW_CHUNK)
+        self._law_partial = bool((self._law_h < S).any())
+
+    def _extend_law(self, run: "_LawRun", want: int) -> None:
+        """Advance a reference run by at least ``want`` samples (:meth:`_LawRun.advance`) and write
+        the new running sums into its arms' rows of ``_law_cum``; a run that reaches the episode's
+        end is cached (up to 16 scenarios)."""
+        h0, h1, cum = run.advance(want)
+        for r, arms in enumerate(run.arms):
+            for i in arms:
+                self._law_cum[i, h0:h1] = cum[r]
+                self._law_h[i] = h1
+        self._law_partial = bool((self._law_h < run.samples).any())
+        if h1 == run.samples:
+            for r, arms in enumerate(run.arms):
+                key = run.keys[r]
+                if arms and len(self._cum_cache) < 16 and key not in self._cum_cache:
+                    self._cum_cache[key] = self._law_cum[next(iter(arms))].copy()
+            for arms in run.arms:
+                for i in arms:
+                    self._law_run[i] = None
+            run.arms = [set() for _ in run.arms]
+
+    def _catch_up_law(self) -> None:
+        """Extend the reference where the episodes got past it (an arm stepped past its end, as the
+        vector env's next-step autoreset does before resetting it, reads the last sample)."""
+        ns = np.minimum(self._ep_f[:, EP_SAMPLES], self._law_cum.shape[1])
+        for i in np.flatnonzero(ns > self._law_h):
+            while ns[i] > self._law_h[i]:
+                self._extend_law(self._law_run[i], int(ns[i] - self._law_h[i]))
+
+    def law_cumulative(self, scenarios: Sequence[Scenario]) -> np.ndarray:
+        """The reference law alone on each scenario, without noise (as :meth:`law_level`): each
+        joint's running sum of e1^2 (rad^2) through every 1 ms sample of the episode,
+        (len(scenarios), samples, n), the score term's reference, computed whole (the env itself
+        computes it lazily, chunk by chunk, to the same bits). A non-finite error, and every sample
+        after the law's run stopped (it diverged), count as +inf."""
+        S = self._law_cum.shape[1]
+        keys, todo, loop = self._reference_runs(scenarios, {})
+        run = _LawRun(loop, todo, [set() for _ in todo], S, self.n)
+        out = np.empty((len(todo), S, self.n))
+        while run.h < S:
+            h0, h1, cum = run.advance(LAW_CHUNK)
+            out[:, h0:h1] = cum
+        return out[[todo.index(k) for k in keys]]
+
+    # ------------------------------------------------------------------ step
+    def check_actions(self, actions: Any) -> np.ndarray:
+        """The actions as a new (N, n) float64 array clipped to [-1, 1]; ValueError if they are
+        not real numbers (complex, bool, strings, objects), the shape is wrong or an entry is NaN
+        or infinite."""
+        try:
+            a = np.asarray(actions)
+        except (TypeError, ValueError) as exc:  # e.g. ragged nested lists
+            raise ValueError(f"action must be an array of real numbers, got {actions!r}") from exc
+        if a.dtype.kind not in "fiu":
+            raise ValueError(f"action must be an array of real numbers (float or integer dtype), got "
+                             f"dtype {a.dtype}: {actions!r}")
+        a = np.array(a, dtype=np.float64)  # a copy: the caller's array is never modified
+        want = (self.n,) if self.single else (self.num_envs, self.n)
+        if a.shape != want:
+            raise ValueError(f"action must have shape {want}, got {a.shape}")
+        a = a.reshape(self.num_envs, self.n)
+        if not _clip_finite(a):
+            raise ValueError(f"action must be finite, got {np.asarray(actions).tolist()}")
+        return a
+
+    def step(self, actions: Any, skip: np.ndarray | None = None
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        """One agent step of every arm; returns (obs, rewards, terminated, truncated, info) with
+        ``info`` a dict of per-arm arrays (see :meth:`info_row` for one arm's plain dict).
+
+        ``skip`` (a boolean mask) marks arms whose results the caller discards because it resets
+        them next (the vector env's next-step autoreset): they draw no noise, so each arm's random
+        stream stays that of a single env."""
+        a = self.check_actions(actions)
+        N = self.num_envs
+        residual = self._torque(a)
+        noise, obs_noise = self._draw_noise(1, skip)
+        rec = self._record
+        _, nrec, status = self.loop.advance(
+            self.steps_per_period, residual=residual, noise=noise,
+            terminate=self.terminate_on_violation,
+            record_samples=self.samples_per_period if rec is not None else 0,
+            out=None if rec is None else rec.slab() if self._rec_all is None else self._rec_all)
+        if rec is not None:
+            if self._rec_all is not None:
+                self._pick_channels(self._rec_all, rec.slab())
+            rec.commit(nrec)
+        self.steps += 1
+        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
+        res = np.empty((len(STEP_ROWS), N))
+        t_end = self.loop.time
+        if self.weights.law_baseline:
+            k = np.minimum(self.steps - 1, self.max_episode_steps - 1)
+            base = self._law_steps[np.arange(N), k]
+        else:
+            base = self._no_base
+        flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
+        rewards = res[R_REWARD]
+        if self._score_w > 0:
+            if self._law_partial and (self._ep_f[:, EP_SAMPLES] > self._law_h).any():
+                self._catch_up_law()
+            score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
+                       self._score_w, rewards, self._score_term)
+        terminated = res[R_TERMINATED] > 0.0
+        truncated = res[R_TRUNCATED] > 0.0
+        reason = np.empty(N, dtype=object)  # filled with None
+        trunc_reason = np.empty(N, dtype=object)
+        if flags:
+            for i in range(N):
+                if status[i, ST_DIVERGED]:
+                    reason[i] = "diverged"
+                elif terminated[i]:
+                    reason[i] = "violation"
+                elif truncated[i]:
+                    trunc_reason[i] = "time_limit"
+        last = self.loop.last.copy()  # the info entries below are views of this fresh copy
+        sl = self._last_slices
+        x3 = last[:, sl[2]]
+        info: dict[str, Any] = {
+            "cost": res[R_VIOLATED],
+            "violating_samples": status[:, ST_VIOL_SAMPLES],
+            "u": last[:, sl[0]],
+            "u_law": last[:, sl[1]],
+            "u_residual": residual,
+            "saturated": status[:, ST_SAT_STEPS] > 0,
+            "x3": x3,
+            "x3_hat": last[:, sl[3]],
+            "controller_outputs": {name: last[:, s] for name, s in self._out_slices},
+            "termination_reason": reason,
+            "truncation_reason": trunc_reason,
+            "reward_info": {"alive": res[R_ALIVE], **{t.name: res[R_TERM0 + k] for k, t in enumerate(TERMS)},
+                            "score": self._score_term.copy(), "violation": res[R_PENALTY]},
+        }
+        if self._filter_slices:
+            info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}
+        if flags & 2:
+            info["diverged_message"] = np.array(
+                [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps, self.controller.name)
+                 or None for d, t in zip(status[:, ST_DIVERGED], t_end)],
+                dtype=object)
+        if flags:
+            # the episode's totals on its last step (Gymnasium's RecordEpisodeStatistics owns
+            # info["episode"]; these are the benchmark's own metrics)
+            em = np.empty(N, dtype=object)
+            for i in np.flatnonzero(terminated | truncated):
+                em[i] = self.episode_metrics(int(i), reason[i], trunc_reason[i])
+            info["episode_metrics"] = em
+        if flags:
+            self.done[:] = terminated | truncated
+        else:
+            self.done[:] = False
+        which = None if skip is None or not skip.any() else [int(i) for i in np.flatnonzero(~skip)]
+        obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
+        return obs, rewards, terminated, truncated, info
+
+    def _torque(self, a: np.ndarray) -> np.ndarray:
+        """Actions in [-1, 1] as N m: the residual's scale, or in plain mode each arm's torque limit."""
+        return a * (self.residual_scale if self.residual else self._umax[:, None])
+
+    def _draw_noise(self, periods: int, skip: np.ndarray | None = None
+                    ) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The measurement noise of ``periods`` control periods: (angle noise (N, periods * steps, n),
+        the next observation's (N, n)) in rad, or (None, None) when no arm is noisy. Each arm draws
+        from its own generator, and only if it is noisy and not in ``skip``, so an arm's stream does
+        not depend on its neighbours (vector env == single envs): per period, the angle noise of its
+        integration steps, then the next observation's, in one call for all periods (the same
+        numbers as one call per period, or two)."""
+        if not self._noisy:
+            return None, None
+        N, n, spp = self.num_envs, self.n, self.steps_per_period
+        k = spp * n
+        z = np.zeros((N, periods, k + n))
+        for i in self._noisy:
+            if skip is None or not skip[i]:
+                self.rngs[i].standard_normal(out=z[i])
+        z *= self._stds[:, None, None]
+        return z[:, :, :k].reshape(N, periods * spp, n), z[:, -1, k:]
+
+    def hold(self, actions: Any, periods: int) -> None:
+        """``periods`` control periods of every arm with the same ``actions``, in one kernel call,
+        for runs read only through :meth:`trajectory` (blf-eval's runs of the law alone, a zero
+        residual). The state, the record, the episode's counters and each arm's random stream are
+        what ``periods`` calls of :meth:`step` would leave, bit for bit: the kernel's numbers do not
+        depend on how a run is cut into calls, and a noisy arm draws the same numbers, the
+        observation noise it does not use included. (The running sums behind
+        :meth:`episode_metrics`' RMSE are added per call, so they may differ in the last bits.)
+        No observation, reward or info is made, so it needs a reward that keeps no state across
+        steps (no score term, not relative), termination off, a control period of whole 1 ms
+        samples and ``periods`` that stay within every arm's episode; ValueError otherwise."""
+        o = f"{self.owner} hold:"
+        periods = check_int(o, "periods", periods, lo=1)
+        if self._score_w > 0 or self.weights.relative or self.terminate_on_violation:
+            raise ValueError(f"{o} needs reward_weights with no score term and relative=False, and "
+                             "terminate_on_violation=False (their steps read the steps before)")
+        if self.steps_per_period % self.sim.steps_per_sample:
+            raise ValueError(f"{o} needs a control period of whole 1 ms samples, got {self.control_period} s")
+        if int(self.steps.max()) + periods > self.max_episode_steps:
+            raise ValueError(f"{o} periods={periods} would run past the episode's end "
+                             f"({self.max_episode_steps} periods, {int(self.steps.max())} done)")
+        a = self.check_actions(actions)
+        N, n, spp, m = self.num_envs, self.n, self.steps_per_period, self.samples_per_period
+        residual = self._torque(a)
+        noise, _ = self._draw_noise(periods)
+        rec = self._record
+        out = None if rec is None else np.empty((N, periods * m, len(CHANNELS), n))
+        _, nrec, status = self.loop.advance(periods * spp, residual=residual, noise=noise, terminate=False,
+                                            record_samples=periods * m if rec is not None else 0, out=out)
+        if rec is not None:
+            for j in range(periods):
+                part = out[:, j * m : (j + 1) * m]
+                self._pick_channels(part, rec.slab())
+                rec.commit(np.clip(nrec - j * m, 0, m))
+        self.steps += periods
+        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
+
+    def episode_metrics(self, i: int, termination_reason: str | None = None,
+                        truncation_reason: str | None = None) -> dict[str, Any]:
+        """Arm i's episode so far, in the benchmark's terms: RMSE per joint (degrees, over its 1 ms
+        samples, as blf-eval computes it), violating 1 ms samples (any joint), violating integration
+        steps, the first violation (s, on the integration grid, or None), divergence, and how it
+        ended."""
+        ei, ef = self._ep_int[i], self._ep_f[i]
+        samples = float(ef[EP_SAMPLES])
+        rmse = (np.degrees(np.sqrt(ef[EP_E2_JOINT:] / samples)).tolist() if samples > 0 else [None] * self.n)
+        dt = self.sim.dt
+        return {
+            "rmse_deg": rmse,
+            "violating_samples": int(ei[EP_VIOL_SAMPLES]),
+            "violating_steps": int(ei[EP_VIOL_STEPS]),
+            "filter_breaches": int(ei[EP_BREACHES]) if self.residual_filter else None,
+            "assumption_failures": int(ei[EP_ASSUME_FAIL]) if self.residual_filter else None,
+            "first_violation_s": None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
+            "diverged": bool(ei[EP_DIV_CODE]),
+            "samples": int(samples),
+            "time_s": float(self.loop.ksteps[i] * dt),
+            "termination_reason": termination_reason,
+            "truncation_reason": truncation_reason,
+        }
+
+    def _pick_channels(self, samples: np.ndarray, slab: np.ndarray) -> None:
+        """Copy the recorded channels of ``samples`` (N, m, all channels, n) into ``slab`` (one run,
+        a whole copy, when every channel is recorded)."""
+        for d, c, k in self._rec_runs:
+            slab[:, :, d : d + k] = samples[:, :, c : c + k]
+
+    def trajectory(self, i: int = 0, release: bool = False):
+        """Arm i's current episode so far on the 1 ms grid, as a
+        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``; its signals are the
+        ``record_channels``, all by default), with the same counters as the inner path's:
+        violating integration steps, the first one, saturated steps and divergence.
+        ``release=True`` frees the arm's record once it is copied out (an evaluation that reduces
+        each episode as it comes keeps one copy, not two)."""
+        from .simulate import Trajectory, divergence_message
+
+        if not self.record:
+            raise ValueError("trajectories are kept only with record=True")
+        r = self._record.samples(i, release)
+        signals = {name: (r[:, k, 0].copy() if name == "t" else r[:, k, :].copy())
+                   for k, name in enumerate(self.record_channels)}
+        ei = self._ep_int[i]
+        dt = self.sim.dt
+        code = int(ei[EP_DIV_CODE])
+        t_div = float(ei[EP_DIV_STEP] * dt) if code else None
+        return Trajectory(scenario=self.scenarios[i].name, controller=self.controller.name,
+                          dt=dt, signals=signals, diverged=bool(code), diverged_at=t_div,
+                          step_violations=int(ei[EP_VIOL_STEPS]),
+                          first_violation_step_time=None if ei[EP_FIRST_VIOL] < 0 else float(ei[EP_FIRST_VIOL] * dt),
+                          saturated_steps=int(ei[EP_SAT_STEPS]), divergence_code=code,
+                          filter_breaches=int(ei[EP_BREACHES]), assumption_failures=int(ei[EP_ASSUME_FAIL]),
+                          residual_filter=self.residual_filter,
+                          message=divergence_message(code, t_div or 0.0, dt, self.sim.unstable_steps,
+                                                     self.controller.name) if code else "")
+
+    @staticmethod
+    def info_row(info: dict[str, Any], i: int) -> dict[str, Any]:
+        """Arm i's info as a plain dict (what the single env returns)."""
+        out: dict[str, Any] = {}
+        for k, v in info.items():
+            if type(v) is dict:
+                out[k] = {kk: (vv.item(i) if vv.ndim == 1 else vv[i]) for kk, vv in v.items()}
+            elif v.ndim == 1:
+                out[k] = v.item(i)  # a Python scalar (or the object itself)
+            else:
+                out[k] = v[i]
+        return out
+
+    # ------------------------------------------------------------------ observation
+    def observe(self, info: dict[str, Any] | None = None,
+                which: Sequence[int] | None = None, t: np.ndarray | None = None,
+                noise: np.ndarray | None = None) -> np.ndarray:
+        """Observations (N, obs_dim) float32 at the arms' current time; adds the state part of
+        ``info`` (time, error, bounds, margins, as per-arm arrays) when given. Measurement noise is
+        drawn only for the arms in ``which`` (default all); the other rows are for discarding. ``t``
+        is the arms' current time when the caller already has it; ``noise`` (N, n) rad is the
+        measurement noise when the caller drew it (then nothing is drawn here)."""
+        N, n = self.num_envs, self.n
+        X = self.loop.X
+        if t is None:
+            t = self.loop.time
+        b = self.loop._batch
+        if noise is None:
+            noise = self._obs_noise
+            noise[:] = 0.0
+            for i in self._noisy:
+                if which is None or i in which:
+                    noise[i] = self.rngs[i].standard_normal(n) * self._stds[i]
+        obs = np.empty((N, self.obs_dim), dtype=np.float32)
+        state = np.empty((N, 3 * n))
+        observe_batch(X, t, b.ref, b.bnd, b.plant, self.loop.last, noise, self._durations, self._umax, self._plan,
+                      self._plan_scale, self._box64[0], self._box64[1], obs, self._ref, self._bnd, state)
+        if info is not None:
+            bnd = self._bnd.copy()
+            info["time"] = t
+            info["e1"] = state[:, :n]
+            info["k_a"] = bnd[:, KA]
+            info["k_b"] = bnd[:, KB]
+            # g(t, q) <= 0 convention: positive means the bound is broken
+            info["g_upper"] = state[:, n : 2 * n]
+            info["g_lower"] = state[:, 2 * n :]
+            if self.privileged:
+                info["qd"] = X[:, n : 2 * n].copy()
+        return obs
