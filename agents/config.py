@@ -69,6 +69,17 @@ class TrainConfig:
     note: str = field(default="", metadata={"kind": "str"})
     """Free text, recorded with the run."""
 
+    @classmethod
+    def of(cls, cfg: Mapping[str, Any], where: str) -> "TrainConfig":
+        """The typed config of a mapping (a YAML file's, with any ``--set``): checked by
+        :func:`check_config`, keys left out or null taking the defaults; ValueError naming ``where``
+        and the key otherwise."""
+        check_config(cfg, where)
+        tc = cls(**{k: v for k, v in cfg.items() if v is not None})
+        if tc.normalize_reward and not tc.normalize:
+            raise ValueError(f"{where}: normalize_reward needs normalize: true")
+        return tc
+
 
 CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(TrainConfig))
 """The keys a training config may hold (the fields of :class:`TrainConfig`)."""

@@ -64,7 +64,7 @@ import numpy as np
 from blf_gym.io import atomic_write_json, atomic_write_text
 from blf_gym.params import is_integer, is_real
 
-from .config import (CONFIG_KEYS, RunSpec, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
+from .config import (CONFIG_KEYS, RunSpec, TrainConfig, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
                      shipped_config)
 from .evaluate import CURVE_GROUPS
 
@@ -328,7 +328,7 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         trial = copy.deepcopy(cfg)
         for k, v in spec["overrides"].items():
             set_dotted(trial, k, v)
-        check_config(trial, f"{where}: the base config with the overrides")
+        TrainConfig.of(trial, f"{where}: the base config with the overrides")
         scoring.add((trial.get("curve_suite_seeds", 4), (trial.get("env") or {}).get("duration")))
     if len(scoring) > 1:
         raise _err(where, "all configs must share curve_suite_seeds and env.duration (every trial is scored "
@@ -348,7 +348,7 @@ def trial_config(spec: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]
     for k, v in params.items():
         if k != "config":
             set_dotted(cfg, k, v)
-    check_config(cfg, "trial config")
+    TrainConfig.of(cfg, "trial config")
     return cfg
 
 

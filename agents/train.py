@@ -44,7 +44,6 @@ from .config import RunSpec, TrainConfig, add_config_options, apply_overrides, c
 __all__ = ["main", "load_config", "train"]
 
 MODES = tuple(ENV_IDS)
-_DEFAULTS = TrainConfig()
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
@@ -61,12 +60,6 @@ def load_config(path: str | Path) -> dict[str, Any]:
         raise ValueError(f"{path}: not valid YAML ({exc})") from None
     check_config(cfg, str(path))
     return cfg
-
-
-def _setting(cfg: dict[str, Any], key: str) -> Any:
-    """A config's value for ``key``, or :class:`TrainConfig`'s default when the file leaves it out."""
-    v = cfg.get(key)
-    return getattr(_DEFAULTS, key) if v is None else v
 
 
 def _stated(cfg: dict[str, Any]) -> dict[str, Any]:
@@ -243,8 +236,6 @@ def _settle(given: dict[str, Any], timesteps: int | None, config: str | Path | N
             cfg, cfg_file = load_config(path), str(path)
         if overrides:
             cfg = apply_overrides(cfg, overrides, f"{_where(cfg_file)} with --set")
-    if cfg.get("normalize_reward") and not cfg.get("normalize"):
-        raise ValueError(f"{_where(cfg_file)}: normalize_reward needs normalize: true")
     return run, cfg, cfg_file
 
 
@@ -253,9 +244,9 @@ def _where(cfg_file: str) -> str:
     return cfg_file or "the config (TrainConfig's defaults, agents/config.py)"
 
 
-def _env_kwargs(run: RunSpec, cfg: dict[str, Any]) -> dict[str, Any]:
+def _env_kwargs(run: RunSpec, tc: TrainConfig) -> dict[str, Any]:
     """The training env's keyword arguments, as the metadata records them."""
-    env_kwargs: dict[str, Any] = {"scenario": run.scenario, **(cfg.get("env") or {})}
+    env_kwargs: dict[str, Any] = {"scenario": run.scenario, **tc.env}
     if run.mode == "residual":
         env_kwargs["controller"] = run.controller
     if run.observer != "leso":
@@ -297,27 +288,27 @@ def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
     return model, start_steps, prior_model_wall
 
 
-def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_file: str, venv, out: Path):
+def _new_model(cls, run: RunSpec, tc: TrainConfig, cfg_file: str, venv, out: Path):
     """A fresh model of the registered class ``cls`` on ``venv`` (wrapped in VecNormalize when
     the config normalizes), with the config's hyperparameters."""
     from stable_baselines3.common.noise import NormalActionNoise
     from stable_baselines3.common.vec_env import VecNormalize
 
-    if cfg.get("normalize"):
-        venv = VecNormalize(venv, norm_obs=True, norm_reward=bool(_setting(cfg, "normalize_reward")),
-                            gamma=float((cfg.get("hyperparams") or {}).get("gamma", 0.99)))
-    kwargs = dict(cfg.get("hyperparams") or {})
+    if tc.normalize:
+        venv = VecNormalize(venv, norm_obs=True, norm_reward=tc.normalize_reward,
+                            gamma=float(tc.hyperparams.get("gamma", 0.99)))
+    kwargs = dict(tc.hyperparams)
     for key in ("learning_rate", "clip_range"):
         if isinstance(kwargs.get(key), str):
             kwargs[key] = _schedule(kwargs[key], f"{_where(cfg_file)}: hyperparams.{key}")
-    if cfg.get("policy_kwargs"):
-        kwargs["policy_kwargs"] = dict(cfg["policy_kwargs"])
-    if cfg.get("action_noise_std"):
+    if tc.policy_kwargs:
+        kwargs["policy_kwargs"] = dict(tc.policy_kwargs)
+    if tc.action_noise_std:
         # any registered algorithm whose constructor takes SB3's action_noise (the off-policy ones)
         if "action_noise" not in inspect.signature(cls.__init__).parameters:
             raise ValueError(f"{_where(cfg_file)}: action_noise_std needs an algorithm that takes SB3's action_noise "
                              f"(an off-policy one); {run.algo} does not")
-        kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(cfg["action_noise_std"]) * np.ones(3))
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(tc.action_noise_std) * np.ones(3))
     tb = None
     try:
         import tensorboard  # noqa: F401
@@ -326,7 +317,7 @@ def _new_model(cls, run: RunSpec, cfg: dict[str, Any], cfg_file: str, venv, out:
     except ImportError:
         print("blf-train: tensorboard is not installed; no TensorBoard logs", file=sys.stderr)
     try:
-        return cls(_setting(cfg, "policy"), venv, seed=run.seeds[0], device="cpu", tensorboard_log=tb, verbose=0,
+        return cls(tc.policy, venv, seed=run.seeds[0], device="cpu", tensorboard_log=tb, verbose=0,
                    **kwargs)
     except TypeError as exc:
         raise ValueError(f"{_where(cfg_file)}: a hyperparameter is not accepted by {run.algo.upper()}: {exc}") from exc
@@ -406,8 +397,9 @@ def train(
         overrides = parse_overrides(overrides)
     run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path, overrides)
     timesteps, seed = run.timesteps, run.seeds[0]
-    env_kwargs = _env_kwargs(run, cfg)
-    normalize = bool(cfg.get("normalize"))
+    tc = TrainConfig.of(cfg, _where(cfg_file))
+    env_kwargs = _env_kwargs(run, tc)
+    normalize = tc.normalize
 
     import torch
     from stable_baselines3.common.callbacks import CallbackList
@@ -419,7 +411,7 @@ def train(
 
     torch.set_num_threads(1)
     cls = algorithm_class(run.algo)
-    n_envs = int(_setting(cfg, "n_envs"))
+    n_envs = tc.n_envs
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs}))
     model, start_steps, prior_model_wall = None, 0, 0.0
     if resume:
@@ -436,7 +428,7 @@ def train(
             venv.close()
             return out
     if model is None:
-        model = _new_model(cls, run, cfg, cfg_file, venv, out)
+        model = _new_model(cls, run, tc, cfg_file, venv, out)
     continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
     clock = _RunClock(prior_model_wall)
@@ -482,14 +474,14 @@ def train(
         atomic_write_json(meta_path, meta)
 
     record()
-    freq = max(1, int(_setting(cfg, "checkpoint_freq")) // n_envs)
+    freq = max(1, tc.checkpoint_freq // n_envs)
     callbacks = [
         AtomicCheckpointCallback(freq, str(ckpt_dir), state=lambda: {"wall_s_to_model": round(clock.model(), 3)},
                                  on_saved=lambda _folder: record(), name_prefix="model",
                                  save_replay_buffer=True, save_vecnormalize=normalize),
-        _make_curve_callback(int(_setting(cfg, "eval_freq")), out, env_kwargs,
+        _make_curve_callback(tc.eval_freq, out, env_kwargs,
                              {"name": meta["name"], "mode": run.mode, "env_kwargs": env_kwargs},
-                             int(_setting(cfg, "curve_suite_seeds")), clock, on_point=record),
+                             tc.curve_suite_seeds, clock, on_point=record),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
     remaining = max(0, timesteps - start_steps)

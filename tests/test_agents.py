@@ -500,3 +500,17 @@ def test_set_overrides_config_keys_from_the_command_line(tmp_path, capsys):
     assert "--resume keeps the run's own config" in capsys.readouterr().err
     assert train_main([*base, "--resume", "--timesteps", "128", *sets]) == 0  # the same values: no change
     assert json.loads((out / "metadata.json").read_text())["timesteps"] >= 128
+
+
+def test_train_config_of_a_mapping_is_typed_and_checked():
+    """TrainConfig.of: the typed config blf-train and a sweep's trials use; left-out and null keys
+    take the defaults, a bad key or type or an inconsistent pair is refused by name."""
+    from agents.config import TrainConfig
+
+    tc = TrainConfig.of({"n_envs": 4, "eval_freq": None, "env": {"duration": 2.0}}, "f.yaml")
+    assert tc.n_envs == 4 and tc.eval_freq == TrainConfig().eval_freq and tc.env == {"duration": 2.0}
+    for cfg, msg in (({"normalize_reward": True}, "f.yaml: normalize_reward needs normalize: true"),
+                     ({"n_envs": 1.5}, "f.yaml: n_envs must be an integer >= 1"),
+                     ({"normalise": True}, r"f.yaml: unknown config key\(s\) \['normalise'\]")):
+        with pytest.raises(ValueError, match=msg):
+            TrainConfig.of(cfg, "f.yaml")
