@@ -89,7 +89,6 @@ _UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"],
 _UNSTABLE_STEPS = _T["unstable_steps"]
 
 
-
 @njit(cache=True, error_model="numpy")
 def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
     """x3 = qdd - F_nom(q, qd) - M_nom^-1 u = M_nom^-1 (M_nom qdd + C_nom qd + G_nom - u)."""
@@ -376,11 +375,13 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
     :func:`lane_layout`, lanes innermost).
 
-    One step is: the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and the rest of the
-    right-hand side, in two loops over the lanes), the step's bookkeeping at its start (:func:`_step_bookkeeping`;
-    at 1 ms samples also the reward's :func:`blf_gym.reward.accumulate_sample` and the record),
-    the update (:func:`_ode3_update`) and the instability check (:func:`_error_ratio`,
-    :func:`_instability`). Every lane computes every stage the block needs; a lane's own control
+    A block is loaded (:func:`_load_block_template`), stepped, and stored back
+    (:func:`_store_block_template`). One step is: its lanes' inputs (:func:`_begin_step_template`),
+    the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and the rest of the right-hand
+    side, in two loops over the lanes), the step's bookkeeping at its start
+    (:func:`_sample_template`: violations, the reward's sums, the record), the update
+    (:func:`_ode3_update`), the instability check (:func:`_check_stability_template`) and the commit
+    (:func:`_commit_template`). The parts are cloned with the kernel's bindings and inlined. Every lane computes every stage the block needs; a lane's own control
     flow (stopped, noisy, first-same-as-last, instability checks) only decides what it keeps, so
     each arm's numbers are those it would get alone.
 
@@ -417,148 +418,92 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
     nx = _NX  # noqa: F821
     LN = _LN  # noqa: F821 (lanes per block)
-    has_noise = noise.shape[1] > 0
     n_blocks = (N + LN - 1) // LN
     while True:
-        blk = _claim(taken)
-        if blk >= n_blocks:
+        block = _claim(taken)
+        if block >= n_blocks:
             break
-        W = scratch[blk]
-        a0 = blk * LN
-        # load the lanes (a padding lane past the last arm copies the block's first arm, inactive)
-        for b in range(LN):
-            a = a0 + b if a0 + b < N else a0
-            _copy(X[a], _lane(W, _L_x, nx, b))  # noqa: F821
-            _copy(plant[a], _lane(W, _L_plant, _NPL, b))  # noqa: F821
-            nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
-            same_arm = True
-            for i in range(2 * n + 1):
-                nom[model_length(n) + i] = nominal[a, i]
-                if nominal[a, i] != plant[a, i]:
-                    same_arm = False
-            _copy(rp[a], _lane(W, _L_rp, _NRP, b))  # noqa: F821
-            _copy(bp[a], _lane(W, _L_bp, _NBP, b))  # noqa: F821
-            _copy(lg[a], _lane(W, _L_lg, _NLG, b))  # noqa: F821
-            _copy(og[a], _lane(W, _L_og, _NOG, b))  # noqa: F821
-            _copy(fgains[a], _lane(W, _L_fg, _NFG, b))  # noqa: F821
-            _copy(residual[a], _lane(W, _L_res, n, b))  # noqa: F821
-            fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-            for i in range(_N_FLAGS):
-                fl[i] = 0.0
-            real = a0 + b < N
-            fl[_F_STOPPED] = 0.0 if real else 1.0
-            fl[_F_K0] = ksteps[a]
-            fl[_F_SAME_ARM] = 1.0 if same_arm else 0.0
-            # a noisy arm's measurement changes every step: its check runs once per sample period
-            noisy = False
-            if has_noise:
-                for j in range(n_steps):
-                    for i in range(n):
-                        if noise[a, j, i] != 0.0:
-                            noisy = True
-            fl[_F_NOISY] = 1.0 if noisy else 0.0
-            if real:
-                st_b = status[a]
-                sm_b = sums[a]
-                for i in range(st_b.shape[0]):
-                    st_b[i] = 0
-                st_b[ST_FIRST_VIOL] = -1
-                for i in range(sm_b.shape[0]):
-                    sm_b[i] = 0.0
+        work = scratch[block]
+        arm0 = block * LN
+        _load_block(work, arm0, N, n_steps, X, ksteps, plant, nominal, rp, bp, lg, og, fgains, residual, noise,  # noqa: F821
+                    status, sums)
         any_fsal = False  # every active lane's stage 0 is its last step's check evaluation
         for j in range(n_steps):
-            # per lane: the step's noise, whether its instability check runs, who is still going
-            n_active = 0
-            any_check = False
-            for b in range(LN):
-                fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                if fl[_F_STOPPED] == 0.0:
-                    fl[_F_HALT] = 0.0
-                k = np.int64(fl[_F_K0]) + j
-                check = fl[_F_NOISY] == 0.0 or (k + 1) % sps == 0
-                fl[_F_CHECK] = 1.0 if check else 0.0
-                nz = _lane(W, _L_nz, n, b)  # noqa: F821
-                a = a0 + b if a0 + b < N else a0
-                for i in range(n):
-                    nz[i] = noise[a, j, i] if has_noise else 0.0
-                if fl[_F_STOPPED] == 0.0:
-                    n_active += 1
-                    if check:
-                        any_check = True
+            n_active, any_check = _begin_step(work, arm0, N, j, sps, noise)  # noqa: F821
             if n_active == 0:
                 break
-            for st in range(4):
-                if st == 0 and any_fsal:
+            for stage in range(4):
+                if stage == 0 and any_fsal:
                     # the check's evaluation at this state, with these inputs, was last step's: K3
                     for b in range(LN):
-                        _copy(_lane(W, _L_K3, nx, b), _lane(W, _L_K0, nx, b))  # noqa: F821
-                elif st == 3:
+                        _copy(_lane(work, _L_K3, nx, b), _lane(work, _L_K0, nx, b))  # noqa: F821
+                elif stage == 3:
                     # the update; a lane whose state turns non-finite or leaves the limit halts
                     for b in range(LN):
-                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-                        ok = _ode3_update(_lane(W, _L_x, nx, b), _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b),  # noqa: F821
-                                          _lane(W, _L_K2, nx, b), dt, pl[2 * n + 1 + _DIVLIM],  # noqa: F821
-                                          _lane(W, _L_xn, nx, b), _lane(W, _L_ep, nx, b))  # noqa: F821
-                        fl[_F_OK] = 1.0 if ok else 0.0
+                        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
+                        ok = _ode3_update(_lane(work, _L_x, nx, b), _lane(work, _L_K0, nx, b), _lane(work, _L_K1, nx, b),  # noqa: F821
+                                          _lane(work, _L_K2, nx, b), dt, plant_l[2 * n + 1 + _DIVLIM],  # noqa: F821
+                                          _lane(work, _L_xn, nx, b), _lane(work, _L_ep, nx, b))  # noqa: F821
+                        flags[_F_OK] = 1.0 if ok else 0.0
                     if not any_check:
                         break
-                if st > 0 or not any_fsal:
+                if stage > 0 or not any_fsal:
                     # the stage's time and state, then the two parts of the evaluation, each a
                     # loop over the lanes with the same code for every lane (they vectorise)
                     for b in range(LN):
-                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        xs = _lane(W, _L_xs, nx, b)  # noqa: F821
-                        if st < 3:
-                            _stage_input(st, _lane(W, _L_x, nx, b), _lane(W, _L_K0, nx, b), _lane(W, _L_K1, nx, b), dt,  # noqa: F821
+                        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        xs = _lane(work, _L_xs, nx, b)  # noqa: F821
+                        if stage < 3:
+                            _stage_input(stage, _lane(work, _L_x, nx, b), _lane(work, _L_K0, nx, b), _lane(work, _L_K1, nx, b), dt,  # noqa: F821
                                          xs)
                         else:
-                            _copy(_lane(W, _L_xn, nx, b), xs)  # noqa: F821
-                        k = np.int64(fl[_F_K0]) + j
+                            _copy(_lane(work, _L_xn, nx, b), xs)  # noqa: F821
+                        k = np.int64(flags[_F_K0]) + j
                         t = k * dt
-                        _lane(W, _L_ts, 1, b)[0] = (t if st == 0 else (t + 0.5 * dt if st == 1 else  # noqa: F821
-                                                    (t + 0.75 * dt if st == 2 else (k + 1) * dt)))
+                        _lane(work, _L_ts, 1, b)[0] = (t if stage == 0 else (t + 0.5 * dt if stage == 1 else  # noqa: F821
+                                                    (t + 0.75 * dt if stage == 2 else (k + 1) * dt)))
                     for b in range(LN):
-                        same_y = _stage_trig(_lane(W, _L_ts, 1, b)[0], _lane(W, _L_xs, n, b), _lane(W, _L_xs + n, n, b),  # noqa: F821
-                                    _lane(W, _L_nz, n, b), _lane(W, _L_y, n, b),  # noqa: F821
-                                    _lane(W, _L_rp, _NRP, b), _lane(W, _L_plant, 2 * n + 1, b),  # noqa: F821
-                                    _lane(W, _L_plant + 2 * n + 1, _NPL - 2 * n - 1, b), _lane(W, _L_bp, _NBP, b),  # noqa: F821
-                                    _lane(W, _L_ref, 3 * n, b), _lane(W, _L_bnd, BOUND_LEN, b),  # noqa: F821
-                                    _lane(W, _L_pw + 4 * n, 2 * n, b), _lane(W, _L_nom + n * n + n, 2 * n, b),  # noqa: F821
-                                    _lane(W, _L_fr, n, b), _lane(W, _L_ang, _NANG, b), _lane(W, _L_sn, _NANG, b),  # noqa: F821
-                                    _lane(W, _L_cs, _NANG, b), _lane(W, _L_ex, _NEX, b), _lane(W, _L_ev, _NEX, b),  # noqa: F821
+                        same_y = _stage_trig(_lane(work, _L_ts, 1, b)[0], _lane(work, _L_xs, n, b), _lane(work, _L_xs + n, n, b),  # noqa: F821
+                                    _lane(work, _L_nz, n, b), _lane(work, _L_y, n, b),  # noqa: F821
+                                    _lane(work, _L_rp, _NRP, b), _lane(work, _L_plant, 2 * n + 1, b),  # noqa: F821
+                                    _lane(work, _L_plant + 2 * n + 1, _NPL - 2 * n - 1, b), _lane(work, _L_bp, _NBP, b),  # noqa: F821
+                                    _lane(work, _L_ref, 3 * n, b), _lane(work, _L_bnd, BOUND_LEN, b),  # noqa: F821
+                                    _lane(work, _L_pw + 4 * n, 2 * n, b), _lane(work, _L_nom + n * n + n, 2 * n, b),  # noqa: F821
+                                    _lane(work, _L_fr, n, b), _lane(work, _L_ang, _NANG, b), _lane(work, _L_sn, _NANG, b),  # noqa: F821
+                                    _lane(work, _L_cs, _NANG, b), _lane(work, _L_ex, _NEX, b), _lane(work, _L_ev, _NEX, b),  # noqa: F821
                                     n, LN == 1)  # noqa: F821
-                        _lane(W, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
+                        _lane(work, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
                     for b in range(LN):
                         # the rest of the evaluation at (tb, xs) into dx, written here rather than
                         # inlined from a function of its own: numba copies an inlined function's
                         # whole IR, and this part, with the plug-ins in it, is most of the kernel
-                        tb = _lane(W, _L_ts, 1, b)[0]  # noqa: F821
-                        flb = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        copy_model = LN == 1 and flb[_F_SAME_ARM] != 0.0 and flb[_F_SAME_Y] != 0.0
-                        x = _lane(W, _L_xs, nx, b)  # noqa: F821
-                        y = _lane(W, _L_y, n, b)  # noqa: F821
-                        res = _lane(W, _L_res, n, b)  # noqa: F821
-                        plant_b = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-                        nom = _lane(W, _L_nom, nominal_length(n), b)  # noqa: F821
-                        lgb = _lane(W, _L_lg, _NLG, b)  # noqa: F821
-                        ogb = _lane(W, _L_og, _NOG, b)  # noqa: F821
-                        fg = _lane(W, _L_fg, _NFG, b)  # noqa: F821
-                        ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
-                        bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
-                        cout = _lane(W, _L_cout, _NOUT, b)  # noqa: F821
-                        fout = _lane(W, _L_fout, _NFOUT, b)  # noqa: F821
-                        rr = _lane(W, _L_rr, n, b)  # noqa: F821
-                        u = _lane(W, _L_u, n, b)  # noqa: F821
-                        hu = _lane(W, _L_hu, n, b)  # noqa: F821
-                        satf = _lane(W, _L_satf, n, b)  # noqa: F821
-                        dx = _lane(W, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
-                        pw = _lane(W, _L_pw, _NPW, b)  # noqa: F821
-                        Mp = _lane(W, _L_Mp, n * n, b)  # noqa: F821
-                        Lp = _lane(W, _L_Lp, n * n, b)  # noqa: F821
-                        wl = _lane(W, _L_wl, work_length(n), b)  # noqa: F821
-                        wo = _lane(W, _L_wo, work_length(n), b)  # noqa: F821
-                        fr = _lane(W, _L_fr, n, b)  # noqa: F821
+                        tb = _lane(work, _L_ts, 1, b)[0]  # noqa: F821
+                        flags_b = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+                        copy_model = LN == 1 and flags_b[_F_SAME_ARM] != 0.0 and flags_b[_F_SAME_Y] != 0.0
+                        x = _lane(work, _L_xs, nx, b)  # noqa: F821
+                        y = _lane(work, _L_y, n, b)  # noqa: F821
+                        res = _lane(work, _L_res, n, b)  # noqa: F821
+                        plant_b = _lane(work, _L_plant, _NPL, b)  # noqa: F821
+                        nom = _lane(work, _L_nom, nominal_length(n), b)  # noqa: F821
+                        lgb = _lane(work, _L_lg, _NLG, b)  # noqa: F821
+                        ogb = _lane(work, _L_og, _NOG, b)  # noqa: F821
+                        fg = _lane(work, _L_fg, _NFG, b)  # noqa: F821
+                        ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+                        bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
+                        cout = _lane(work, _L_cout, _NOUT, b)  # noqa: F821
+                        fout = _lane(work, _L_fout, _NFOUT, b)  # noqa: F821
+                        rr = _lane(work, _L_rr, n, b)  # noqa: F821
+                        u = _lane(work, _L_u, n, b)  # noqa: F821
+                        hu = _lane(work, _L_hu, n, b)  # noqa: F821
+                        satf = _lane(work, _L_satf, n, b)  # noqa: F821
+                        dx = _lane(work, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
+                        pw = _lane(work, _L_pw, _NPW, b)  # noqa: F821
+                        Mp = _lane(work, _L_Mp, n * n, b)  # noqa: F821
+                        Lp = _lane(work, _L_Lp, n * n, b)  # noqa: F821
+                        wl = _lane(work, _L_wl, work_length(n), b)  # noqa: F821
+                        wo = _lane(work, _L_wo, work_length(n), b)  # noqa: F821
+                        fr = _lane(work, _L_fr, n, b)  # noqa: F821
                         nn = n * n
                         arm = plant_b[: 2 * n + 1]
                         o = 2 * n + 1
@@ -614,147 +559,272 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
                         _obs_rhs(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
                         _ctrl_update(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-                    # into K0..K3: apart, since a view at an offset that depends on st would keep
+                    # into K0..K3: apart, since a view at an offset that depends on stage would keep
                     # LLVM from proving the lanes of the loop above independent
                     for b in range(LN):
-                        _copy(_lane(W, _L_dx, nx, b), _lane(W, _L_K0 + st * nx, nx, b))  # noqa: F821
-                if st == 3:
-                    # the embedded error estimate grows without bound when h is outside ODE3's
-                    # stability region, even when the actuator limit keeps the state finite
-                    for b in range(LN):
-                        fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        if fl[_F_STOPPED] != 0.0 or fl[_F_HALT] != 0.0 or fl[_F_OK] == 0.0 or fl[_F_CHECK] == 0.0:
-                            continue
-                        a = a0 + b
-                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-                        en = _error_ratio(_lane(W, _L_ep, nx, b), _lane(W, _L_K3, nx, b), _lane(W, _L_xn, nx, b), dt,  # noqa: F821
-                                          pl[2 * n + 1 + _ERR_ATOL], pl[2 * n + 1 + _ERR_RTOL])
-                        if en > sums[a, SUM_ERR_MAX]:
-                            sums[a, SUM_ERR_MAX] = en
-                        err_run, unstable = _instability(en, fl[_F_NOISY] != 0.0, sps, unstable_run[a],
-                                                         pl[2 * n + 1 + _UNSTABLE_STEPS])
-                        unstable_run[a] = err_run
-                        if unstable:
-                            status[a, ST_DIVERGED] = 2
+                        _copy(_lane(work, _L_dx, nx, b), _lane(work, _L_K0 + stage * nx, nx, b))  # noqa: F821
+                if stage == 3:
+                    _check_stability(work, arm0, dt, sps, sums, status, unstable_run)  # noqa: F821
                     continue
-                if st > 0:
+                if stage > 0:
                     continue
-                # bookkeeping at the step's start time t (state x), per lane
-                for b in range(LN):
-                    fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                    if fl[_F_STOPPED] != 0.0:
-                        continue
-                    a = a0 + b
-                    k = np.int64(fl[_F_K0]) + j
-                    x = _lane(W, _L_x, nx, b)  # noqa: F821
-                    ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
-                    bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
-                    u = _lane(W, _L_u, n, b)  # noqa: F821
-                    satf = _lane(W, _L_satf, n, b)  # noqa: F821
-                    cout = _lane(W, _L_cout, _NOUT, b)  # noqa: F821
-                    fout = _lane(W, _L_fout, _NFOUT, b)  # noqa: F821
-                    st_b = status[a]
-                    last_b = last[a]
-                    if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
-                        fl[_F_HALT] = 1.0
-                        if unstable_run[a] > 0:
-                            # the bound broke while ODE3's error estimate was above tolerance: the
-                            # integration's violation, not the arm's (code 3, a divergence)
-                            st_b[ST_DIVERGED] = 3
-                        continue
-                    if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
-                        st_b[ST_FILTER_BREACHES] += 1
-                    if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
-                        st_b[ST_ASSUMPTION_FAILURES] += 1
-                    if k % sps == 0:
-                        # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
-                        y = _lane(W, _L_y, n, b)  # noqa: F821
-                        x3 = _lane(W, _L_x3, n, b)  # noqa: F821
-                        K0 = _lane(W, _L_K0, nx, b)  # noqa: F821
-                        recording = nrec[a] < rec.shape[1]
-                        nom_a = nominal[a]
-                        if recording:
-                            _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_a, x3, _lane(W, _L_Mp, n * n, b),  # noqa: F821
-                                         _lane(W, _L_Lp, n * n, b), _lane(W, _L_pw, _NPW, b))  # noqa: F821
-                            for i in range(n):
-                                last_b[LAST_X3 * n + i] = x3[i]
-                        else:
-                            smp = _lane(W, _L_smp, 4 * n, b)  # noqa: F821
-                            for i in range(n):
-                                smp[i] = x[i]
-                                smp[n + i] = x[n + i]
-                                smp[2 * n + i] = K0[n + i]
-                                smp[3 * n + i] = u[i]
-                            fl[_F_PENDING] = 1.0
-                        pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-                        if accumulate_sample(x, y, ref, bnd, u, cout, pl[2 * n + 1 + _UMAX], sums[a], n):
-                            st_b[ST_VIOL_SAMPLES] += 1
-                        for i in range(n):
-                            last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
-                        if recording:
-                            _record(rec[a, nrec[a]], k * dt, x, y, ref, bnd, u, _lane(W, _L_hu, n, b), cout[:n], satf,  # noqa: F821
-                                    x3, _X1H, _X2H, _X3H)  # noqa: F821
-                            nrec[a] += 1
-                    for i in range(n):
-                        last_b[LAST_U * n + i] = u[i]
-                        last_b[LAST_ULAW * n + i] = cout[i]
-                        last_b[LAST_SAT * n + i] = satf[i]
-                    for i in range(_NOUT):  # noqa: F821
-                        last_b[N_LAST * n + i] = cout[i]
-                    for i in range(_NFOUT):  # noqa: F821
-                        last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
-            # commit, and who goes on
-            any_fsal = True
-            for b in range(LN):
-                fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-                if fl[_F_STOPPED] != 0.0:
-                    continue
-                a = a0 + b
-                if fl[_F_HALT] == 0.0 and fl[_F_OK] == 0.0:
-                    status[a, ST_DIVERGED] = 1
-                if fl[_F_HALT] == 0.0 and fl[_F_OK] != 0.0:
-                    _copy(_lane(W, _L_xn, nx, b), _lane(W, _L_x, nx, b))  # noqa: F821
-                    status[a, ST_STEPS] += 1
-                if fl[_F_HALT] != 0.0 or status[a, ST_DIVERGED] != 0:
-                    fl[_F_STOPPED] = 1.0
-                    continue
-                # first-same-as-last: the check's evaluation is the next step's first one when the
-                # inputs are the same (no noise, and the residual is held for the whole call)
-                if not (fl[_F_CHECK] != 0.0 and fl[_F_NOISY] == 0.0 and j + 1 < n_steps):
-                    any_fsal = False
-        # after the last step, per arm
-        for b in range(LN):
-            a = a0 + b
-            if a >= N:
-                continue
-            fl = _lane(W, _L_flags, _N_FLAGS, b)  # noqa: F821
-            x = _lane(W, _L_x, nx, b)  # noqa: F821
-            x3 = _lane(W, _L_x3, n, b)  # noqa: F821
-            last_b = last[a]
+                _sample(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, status, last, sums, unstable_run)  # noqa: F821
+            any_fsal = _commit(work, arm0, j, n_steps, status)  # noqa: F821
+        _store_block(work, arm0, N, dt, terminate, X, ksteps, nominal, status, last, unstable_run)  # noqa: F821
+
+
+def _load_block_template(work, arm0, N, n_steps, X, ksteps, plant, nominal, rp, bp, lg, og, fgains, residual, noise,
+                         status, sums):
+    """Load block ``work``'s lanes from the arms ``arm0``, ``arm0 + 1``, ... (a padding lane past the
+    last arm copies the block's first arm and stays inactive); clear their flags, status and sums."""
+    n = _N  # noqa: F821
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821
+    has_noise = noise.shape[1] > 0
+
+    for b in range(LN):
+        a = arm0 + b if arm0 + b < N else arm0
+        _copy(X[a], _lane(work, _L_x, nx, b))  # noqa: F821
+        _copy(plant[a], _lane(work, _L_plant, _NPL, b))  # noqa: F821
+        nom = _lane(work, _L_nom, nominal_length(n), b)  # noqa: F821
+        same_arm = True
+        for i in range(2 * n + 1):
+            nom[model_length(n) + i] = nominal[a, i]
+            if nominal[a, i] != plant[a, i]:
+                same_arm = False
+        _copy(rp[a], _lane(work, _L_rp, _NRP, b))  # noqa: F821
+        _copy(bp[a], _lane(work, _L_bp, _NBP, b))  # noqa: F821
+        _copy(lg[a], _lane(work, _L_lg, _NLG, b))  # noqa: F821
+        _copy(og[a], _lane(work, _L_og, _NOG, b))  # noqa: F821
+        _copy(fgains[a], _lane(work, _L_fg, _NFG, b))  # noqa: F821
+        _copy(residual[a], _lane(work, _L_res, n, b))  # noqa: F821
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        for i in range(_N_FLAGS):
+            flags[i] = 0.0
+        real = arm0 + b < N
+        flags[_F_STOPPED] = 0.0 if real else 1.0
+        flags[_F_K0] = ksteps[a]
+        flags[_F_SAME_ARM] = 1.0 if same_arm else 0.0
+        # a noisy arm's measurement changes every step: its check runs once per sample period
+        noisy = False
+        if has_noise:
+            for j in range(n_steps):
+                for i in range(n):
+                    if noise[a, j, i] != 0.0:
+                        noisy = True
+        flags[_F_NOISY] = 1.0 if noisy else 0.0
+        if real:
             st_b = status[a]
-            if fl[_F_PENDING] != 0.0:
-                smp = _lane(W, _L_smp, 4 * n, b)  # noqa: F821
-                _lumped_true(smp[:n], smp[n : 2 * n], smp[2 * n : 3 * n], smp[3 * n :], nominal[a], x3,  # noqa: F821
-                             _lane(W, _L_Mp, n * n, b), _lane(W, _L_Lp, n * n, b), _lane(W, _L_pw, _NPW, b))  # noqa: F821
+            sm_b = sums[a]
+            for i in range(st_b.shape[0]):
+                st_b[i] = 0
+            st_b[ST_FIRST_VIOL] = -1
+            for i in range(sm_b.shape[0]):
+                sm_b[i] = 0.0
+
+
+def _begin_step_template(work, arm0, N, j, sps, noise):
+    """Per lane, at step ``j`` of the call: the step's noise sample, whether its instability check
+    runs; returns (the lanes still going, whether any of them checks)."""
+    n = _N  # noqa: F821
+    LN = _LN  # noqa: F821
+    has_noise = noise.shape[1] > 0
+
+    n_active = 0
+    any_check = False
+    for b in range(LN):
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        if flags[_F_STOPPED] == 0.0:
+            flags[_F_HALT] = 0.0
+        k = np.int64(flags[_F_K0]) + j
+        check = flags[_F_NOISY] == 0.0 or (k + 1) % sps == 0
+        flags[_F_CHECK] = 1.0 if check else 0.0
+        nz = _lane(work, _L_nz, n, b)  # noqa: F821
+        a = arm0 + b if arm0 + b < N else arm0
+        for i in range(n):
+            nz[i] = noise[a, j, i] if has_noise else 0.0
+        if flags[_F_STOPPED] == 0.0:
+            n_active += 1
+            if check:
+                any_check = True
+    return n_active, any_check
+
+
+def _check_stability_template(work, arm0, dt, sps, sums, status, unstable_run):
+    """After a step's update, per checking lane: ODE3's embedded error estimate against its
+    tolerance (:func:`_error_ratio`), its running maximum, and the count of consecutive unstable
+    steps (:func:`_instability`), which flags a divergence (code 2)."""
+    n = _N  # noqa: F821
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821
+
+    # the embedded error estimate grows without bound when h is outside ODE3's
+    # stability region, even when the actuator limit keeps the state finite
+    for b in range(LN):
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        if flags[_F_STOPPED] != 0.0 or flags[_F_HALT] != 0.0 or flags[_F_OK] == 0.0 or flags[_F_CHECK] == 0.0:
+            continue
+        a = arm0 + b
+        plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
+        en = _error_ratio(_lane(work, _L_ep, nx, b), _lane(work, _L_K3, nx, b), _lane(work, _L_xn, nx, b), dt,  # noqa: F821
+                          plant_l[2 * n + 1 + _ERR_ATOL], plant_l[2 * n + 1 + _ERR_RTOL])
+        if en > sums[a, SUM_ERR_MAX]:
+            sums[a, SUM_ERR_MAX] = en
+        err_run, unstable = _instability(en, flags[_F_NOISY] != 0.0, sps, unstable_run[a],
+                                         plant_l[2 * n + 1 + _UNSTABLE_STEPS])
+        unstable_run[a] = err_run
+        if unstable:
+            status[a, ST_DIVERGED] = 2
+
+
+def _sample_template(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, status, last, sums, unstable_run):
+    """Per lane, at step ``j``'s start time (state x, after its first stage evaluation): the
+    violation and saturation bookkeeping (:func:`_step_bookkeeping`), the filter's monitors; at a
+    1 ms sample also the true lumped disturbance, the reward's sums
+    (:func:`blf_gym.reward.accumulate_sample`) and the record; then the last applied signals."""
+    n = _N  # noqa: F821
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821
+
+    for b in range(LN):
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        if flags[_F_STOPPED] != 0.0:
+            continue
+        a = arm0 + b
+        k = np.int64(flags[_F_K0]) + j
+        x = _lane(work, _L_x, nx, b)  # noqa: F821
+        ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+        bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
+        u = _lane(work, _L_u, n, b)  # noqa: F821
+        satf = _lane(work, _L_satf, n, b)  # noqa: F821
+        cout = _lane(work, _L_cout, _NOUT, b)  # noqa: F821
+        fout = _lane(work, _L_fout, _NFOUT, b)  # noqa: F821
+        st_b = status[a]
+        last_b = last[a]
+        if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
+            flags[_F_HALT] = 1.0
+            if unstable_run[a] > 0:
+                # the bound broke while ODE3's error estimate was above tolerance: the
+                # integration's violation, not the arm's (code 3, a divergence)
+                st_b[ST_DIVERGED] = 3
+            continue
+        if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
+            st_b[ST_FILTER_BREACHES] += 1
+        if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
+            st_b[ST_ASSUMPTION_FAILURES] += 1
+        if k % sps == 0:
+            # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
+            y = _lane(work, _L_y, n, b)  # noqa: F821
+            x3 = _lane(work, _L_x3, n, b)  # noqa: F821
+            K0 = _lane(work, _L_K0, nx, b)  # noqa: F821
+            recording = nrec[a] < rec.shape[1]
+            nom_a = nominal[a]
+            if recording:
+                _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_a, x3, _lane(work, _L_Mp, n * n, b),  # noqa: F821
+                             _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
                 for i in range(n):
                     last_b[LAST_X3 * n + i] = x3[i]
-            steps = st_b[ST_STEPS]
-            k0 = np.int64(fl[_F_K0])
-            if fl[_F_STOPPED] == 0.0:
-                t_end = (k0 + steps) * dt
-                ref = _lane(W, _L_ref, 3 * n, b)  # noqa: F821
-                bnd = _lane(W, _L_bnd, BOUND_LEN, b)  # noqa: F821
-                pl = _lane(W, _L_plant, _NPL, b)  # noqa: F821
-                reference_into(t_end, _lane(W, _L_rp, _NRP, b), pl[: 2 * n + 1], ref)  # noqa: F821
-                bounds_into(t_end, _lane(W, _L_bp, _NBP, b), bnd)  # noqa: F821
-                if _violates(x, ref, bnd, n):
-                    st_b[ST_VIOL_STEPS] += 1
-                    if st_b[ST_FIRST_VIOL] < 0:
-                        st_b[ST_FIRST_VIOL] = k0 + steps
-                    if terminate and unstable_run[a] > 0:
-                        st_b[ST_DIVERGED] = 3  # as above: this violation ends the episode, on an unstable integration
-            _copy(x, X[a])
-            ksteps[a] = k0 + steps
+            else:
+                pending = _lane(work, _L_smp, 4 * n, b)  # noqa: F821
+                for i in range(n):
+                    pending[i] = x[i]
+                    pending[n + i] = x[n + i]
+                    pending[2 * n + i] = K0[n + i]
+                    pending[3 * n + i] = u[i]
+                flags[_F_PENDING] = 1.0
+            plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
+            if accumulate_sample(x, y, ref, bnd, u, cout, plant_l[2 * n + 1 + _UMAX], sums[a], n):
+                st_b[ST_VIOL_SAMPLES] += 1
+            for i in range(n):
+                last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
+            if recording:
+                _record(rec[a, nrec[a]], k * dt, x, y, ref, bnd, u, _lane(work, _L_hu, n, b), cout[:n], satf,  # noqa: F821
+                        x3, _X1H, _X2H, _X3H)  # noqa: F821
+                nrec[a] += 1
+        for i in range(n):
+            last_b[LAST_U * n + i] = u[i]
+            last_b[LAST_ULAW * n + i] = cout[i]
+            last_b[LAST_SAT * n + i] = satf[i]
+        for i in range(_NOUT):  # noqa: F821
+            last_b[N_LAST * n + i] = cout[i]
+        for i in range(_NFOUT):  # noqa: F821
+            last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
+
+
+def _commit_template(work, arm0, j, n_steps, status):
+    """Per lane, after step ``j``: keep the new state or flag the divergence, stop lanes that halted;
+    returns whether every going lane may reuse its check evaluation as the next step's first one
+    (first-same-as-last)."""
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821
+
+    any_fsal = True
+    for b in range(LN):
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        if flags[_F_STOPPED] != 0.0:
+            continue
+        a = arm0 + b
+        if flags[_F_HALT] == 0.0 and flags[_F_OK] == 0.0:
+            status[a, ST_DIVERGED] = 1
+        if flags[_F_HALT] == 0.0 and flags[_F_OK] != 0.0:
+            _copy(_lane(work, _L_xn, nx, b), _lane(work, _L_x, nx, b))  # noqa: F821
+            status[a, ST_STEPS] += 1
+        if flags[_F_HALT] != 0.0 or status[a, ST_DIVERGED] != 0:
+            flags[_F_STOPPED] = 1.0
+            continue
+        # first-same-as-last: the check's evaluation is the next step's first one when the
+        # inputs are the same (no noise, and the residual is held for the whole call)
+        if not (flags[_F_CHECK] != 0.0 and flags[_F_NOISY] == 0.0 and j + 1 < n_steps):
+            any_fsal = False
+    return any_fsal
+
+
+def _store_block_template(work, arm0, N, dt, terminate, X, ksteps, nominal, status, last, unstable_run):
+    """After the call's last step, per arm of the block: a pending sample's true disturbance, the
+    end state's violation check, and the state and step counter back into ``X`` and ``ksteps``."""
+    n = _N  # noqa: F821
+    nx = _NX  # noqa: F821
+    LN = _LN  # noqa: F821
+
+    for b in range(LN):
+        a = arm0 + b
+        if a >= N:
+            continue
+        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
+        x = _lane(work, _L_x, nx, b)  # noqa: F821
+        x3 = _lane(work, _L_x3, n, b)  # noqa: F821
+        last_b = last[a]
+        st_b = status[a]
+        if flags[_F_PENDING] != 0.0:
+            pending = _lane(work, _L_smp, 4 * n, b)  # noqa: F821
+            _lumped_true(pending[:n], pending[n : 2 * n], pending[2 * n : 3 * n], pending[3 * n :], nominal[a], x3,  # noqa: F821
+                         _lane(work, _L_Mp, n * n, b), _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
+            for i in range(n):
+                last_b[LAST_X3 * n + i] = x3[i]
+        steps = st_b[ST_STEPS]
+        k0 = np.int64(flags[_F_K0])
+        if flags[_F_STOPPED] == 0.0:
+            t_end = (k0 + steps) * dt
+            ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+            bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
+            plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
+            reference_into(t_end, _lane(work, _L_rp, _NRP, b), plant_l[: 2 * n + 1], ref)  # noqa: F821
+            bounds_into(t_end, _lane(work, _L_bp, _NBP, b), bnd)  # noqa: F821
+            if _violates(x, ref, bnd, n):
+                st_b[ST_VIOL_STEPS] += 1
+                if st_b[ST_FIRST_VIOL] < 0:
+                    st_b[ST_FIRST_VIOL] = k0 + steps
+                if terminate and unstable_run[a] > 0:
+                    st_b[ST_DIVERGED] = 3  # as above: this violation ends the episode, on an unstable integration
+        _copy(x, X[a])
+        ksteps[a] = k0 + steps
+
+
+_PARTS = {"_load_block": _load_block_template, "_begin_step": _begin_step_template,
+          "_check_stability": _check_stability_template, "_sample": _sample_template, "_commit": _commit_template,
+          "_store_block": _store_block_template}
+"""The kernel's parts, each one job, cloned with the same bindings as :func:`_lanes_template` and
+inlined into it."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -910,9 +980,11 @@ def _specialise(conn: Connection, lanes: int = LANES):
                      _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
                      _NANG=layout["ang"][1], _NEX=layout["ex"][1],
                      _lane=_lane1 if lanes == 1 else _laneN)
+        parts = {name: _clone(tpl, f"{name[1:]}{lanes}__n{n}__{tag}", sizes, inline="always")
+                 for name, tpl in _PARTS.items()}
         kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}",
                         {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
-                         "_res_filter": conn.res_filter, **sizes}, nogil=True, _nrt=False)
+                         "_res_filter": conn.res_filter, **sizes, **parts}, nogil=True, _nrt=False)
         cache = _cache_dir(kernel)
         remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)  # the stage function of older versions
         remove_stale_cache(cache, f"advance{lanes}__n{n}__{pair}__", digest)
