@@ -143,7 +143,7 @@ def check_config(cfg: Any, where: str) -> None:
 
 SET_HELP = ("override one key of the training config, KEY=VALUE (repeatable): a key of "
             "agents.config.TrainConfig, or env.KEY, hyperparams.KEY or policy_kwargs.KEY; VALUE is read as "
-            "YAML (1e-4, true, [64, 64], null)")
+            "YAML (1e-4, true, [64, 64], null) (default: none, the file's values)")
 """The help of ``--set``, which blf-train, blf-sweep and blf-tune share."""
 
 _FLOAT = re.compile(r"[-+]?(\d+\.?\d*|\.\d+)[eE][-+]?\d+")
