@@ -11,6 +11,7 @@ this adapter provides exactly that on top of :class:`blf_gym.vector.PlanarBLFVec
 
 from __future__ import annotations
 
+from collections.abc import MutableMapping
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -19,20 +20,86 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from blf_gym.vector import PlanarBLFVectorEnv
 
-__all__ = ["BLFVecEnv"]
+__all__ = ["ArmInfo", "BLFVecEnv"]
+
+
+def _value(v: Any, i: int) -> Any:
+    """Arm i's entry of a batched info value, as a single env gives it (a Python scalar, an array
+    row, or a dict of them)."""
+    if isinstance(v, dict):
+        return _row(v, i)
+    x = v[i]
+    return x.item() if isinstance(x, np.generic) else x
+
+
+def _skip(k: str) -> bool:
+    return k.startswith("_") or k in ("final_obs", "final_info")
 
 
 def _row(info: dict[str, Any], i: int) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for k, v in info.items():
-        if k.startswith("_") or k in ("final_obs", "final_info"):
-            continue
-        if isinstance(v, dict):
-            out[k] = _row(v, i)
-        else:
-            x = v[i]
-            out[k] = x.item() if isinstance(x, np.generic) else x
-    return out
+    return {k: _value(v, i) for k, v in info.items() if not _skip(k)}
+
+
+class ArmInfo(MutableMapping):
+    """One arm's ``info`` in the list SB3 receives, read from the batched info on demand.
+
+    SB3 reads a few keys per step (``terminal_observation``, ``TimeLimit.truncated``, ``episode``,
+    a callback's ``cost``); building every arm's whole dict at every step took a third of the
+    adapter's time. Each value is converted once, when first read, exactly as a plain dict row
+    would hold it; keys written (VecMonitor's ``episode``, VecNormalize's normalized terminal
+    observation) are kept beside. ``copy()`` and ``dict(info)`` give a plain dict."""
+
+    __slots__ = ("_batch", "_i", "_own")
+
+    def __init__(self, batch: dict[str, Any], i: int, own: dict[str, Any] | None = None) -> None:
+        self._batch = batch
+        self._i = i
+        self._own: dict[str, Any] = {} if own is None else own
+
+    def __getitem__(self, key: str) -> Any:
+        own = self._own
+        if key in own:
+            return own[key]
+        if _skip(key) or key not in self._batch:
+            raise KeyError(key)
+        v = own[key] = _value(self._batch[key], self._i)
+        return v
+
+    def __setitem__(self, key: str, value: Any) -> None:
+        self._own[key] = value
+
+    def __delitem__(self, key: str) -> None:
+        if key not in self:
+            raise KeyError(key)
+        self._materialize()
+        del self._own[key]
+        self._batch = {}
+
+    def _materialize(self) -> None:
+        for k in self:
+            self[k]
+
+    def __iter__(self):
+        seen = set()
+        for k in self._batch:
+            if not _skip(k):
+                seen.add(k)
+                yield k
+        for k in list(self._own):
+            if k not in seen:
+                yield k
+
+    def __len__(self) -> int:
+        return sum(1 for _ in self)
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._own or (isinstance(key, str) and not _skip(key) and key in self._batch)
+
+    def copy(self) -> dict[str, Any]:
+        return dict(self)
+
+    def __repr__(self) -> str:
+        return repr(dict(self))
 
 
 _REQUIRED = object()
@@ -72,14 +139,13 @@ class BLFVecEnv(VecEnv):
     def step_wait(self):
         obs, rew, term, trunc, info = self.venv.step(self._actions)
         dones = term | trunc
-        infos: list[dict[str, Any]] = []
+        infos: list[ArmInfo] = []
         for i in range(self.num_envs):
             if dones[i]:
-                row = _row(info["final_info"], i)
-                row["terminal_observation"] = info["final_obs"][i]
-                row["TimeLimit.truncated"] = bool(trunc[i] and not term[i])
+                row = ArmInfo(info["final_info"], i, {"terminal_observation": info["final_obs"][i],
+                                                      "TimeLimit.truncated": bool(trunc[i] and not term[i])})
             else:
-                row = _row(info, i)
+                row = ArmInfo(info, i)
             infos.append(row)
         return obs, rew.astype(np.float32), dones, infos
 

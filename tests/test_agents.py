@@ -223,6 +223,51 @@ def test_vecenv_adapter_hands_back_terminal_observation():
     assert not np.array_equal(obs[0], infos[0]["terminal_observation"])  # obs is the new episode
 
 
+def test_vecenv_infos_read_on_demand_equal_the_whole_rows():
+    """The adapter's per-arm infos (ArmInfo, read on demand) hold what a plain dict row built at
+    the step holds, key for key, even when read after later steps; written keys are kept, and
+    copy() and dict() give plain dicts. The rows are built here from the batched info with a
+    comprehension of our own, at the step, as the adapter used to."""
+    from gymnasium.vector import AutoresetMode
+
+    from blf_gym.vector import PlanarBLFVectorEnv
+
+    def plain(v, i):
+        if isinstance(v, dict):
+            return {k: plain(x, i) for k, x in v.items() if not k.startswith("_") and k not in ("final_obs", "final_info")}
+        x = v[i]
+        return x.item() if isinstance(x, np.generic) else x
+
+    kw = dict(controller="proposed", duration=0.05, scenario="randomized", privileged=True)
+    venv = BLFVecEnv(3, seed=4, **kw)
+    ref = PlanarBLFVectorEnv(num_envs=3, autoreset_mode=AutoresetMode.SAME_STEP, **kw)
+    venv.reset()
+    ref.reset(seed=4)
+    rng = np.random.default_rng(0)
+    kept = []
+    for _ in range(12):  # two episode ends of every arm
+        a = rng.uniform(-1, 1, (3, 3)).astype(np.float32)
+        _, _, dones, infos = venv.step(a)
+        _, _, term, trunc, info = ref.step(a)
+        want = [plain(info["final_info"], i) if dones[i] else plain(info, i) for i in range(3)]
+        kept.append((infos, want, dones.copy()))
+    ends = 0
+    for infos, want, dones in kept:  # read after every later step
+        for i in range(3):
+            got = dict(infos[i])
+            ends += bool(dones[i])
+            if dones[i]:
+                assert got.pop("TimeLimit.truncated") is True and got.pop("terminal_observation").shape == (37,)
+            assert got.keys() == want[i].keys()
+            for k in want[i]:
+                np.testing.assert_equal(got[k], want[i][k])
+    assert ends == 6
+    info = kept[-1][0][0]
+    info["episode"] = {"r": 1.0}
+    assert info["episode"] == {"r": 1.0} and "episode" in info and isinstance(info.copy(), dict)
+    assert info.copy()["episode"] == {"r": 1.0} and info.get("nonexistent") is None and "final_info" not in info
+
+
 def test_eval_cli_end_to_end_with_an_agent(tmp_path, capsys):
     run = tmp_path / "run"
     assert train_main(["--algo", "td3", "--mode", "residual", "--timesteps", "64", "--config",
