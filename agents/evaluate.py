@@ -198,9 +198,14 @@ class _Actor:
     def __init__(self, model: Any) -> None:
         from gymnasium import spaces
 
+        from stable_baselines3.common.policies import BasePolicy
+
         self.model = model
         pol = getattr(model, "policy", None)
-        ok = (pol is not None and callable(getattr(pol, "_predict", None))
+        # a torch policy of SB3's, with torch parameters; any other (sbx's JAX policies subclass
+        # BasePolicy but hold none) acts through model.predict
+        ok = (isinstance(pol, BasePolicy) and next(pol.parameters(), None) is not None
+              and callable(getattr(pol, "_predict", None))
               and isinstance(getattr(pol, "observation_space", None), spaces.Box)
               and isinstance(getattr(pol, "action_space", None), spaces.Box)
               and len(pol.observation_space.shape) == 1)

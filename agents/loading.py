@@ -64,7 +64,8 @@ def algorithm_class(name: str):
         return eps[name].load()
     except ImportError as exc:
         raise ValueError(f"algorithm {name!r} is registered as {eps[name].value} but cannot be imported ({exc}); "
-                         f"install the package that provides it (tqc: pip install sb3-contrib)") from exc
+                         f"install the package that provides it (tqc: pip install sb3-contrib; sbx_ppo, sbx_sac, sbx_crossq: "
+                         f"pip install -c constraints-cpu.txt -e '.[jax]')") from exc
 
 
 def read_json_object(path: Path, what: str, hint: str = "") -> dict[str, Any]:

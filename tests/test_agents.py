@@ -559,3 +559,37 @@ def test_train_config_of_a_mapping_is_typed_and_checked():
                      ({"normalise": True}, r"f.yaml: unknown config key\(s\) \['normalise'\]")):
         with pytest.raises(ValueError, match=msg):
             TrainConfig.of(cfg, "f.yaml")
+
+
+def test_sbx_algorithms_train_resume_and_are_judged_by_name(tmp_path):
+    """SB3's JAX port (the jax extra) registered as sbx_ppo, sbx_sac and sbx_crossq: each trains
+    through blf-train by name, sbx_ppo resumes from its checkpoint, and blf-eval's loader acts with
+    the model's own predict (a JAX policy holds no torch parameters, so the torch fast path must not
+    take it)."""
+    pytest.importorskip("sbx")
+    import dataclasses
+
+    from agents.evaluate import agent_episodes
+    from agents.loading import load_agent
+    from blf_gym.params import preset
+
+    runs = {}
+    for algo, mode, hyper in (("sbx_ppo", "residual", "ppo"), ("sbx_sac", "plain", "sac"),
+                              ("sbx_crossq", "residual", "sac")):
+        cfg = tmp_path / f"{algo}.yaml"
+        cfg.write_text(TINY.format(normalize="true", hyper=HYPER[hyper]))
+        out = runs[algo] = tmp_path / algo
+        assert train_main(["--algo", algo, "--mode", mode, "--timesteps", "64", "--config", str(cfg),
+                           "--out", str(out), "--no-progress"]) == 0
+        meta = json.loads((out / "metadata.json").read_text())
+        assert meta["algo"] == algo and meta["mode"] == mode and meta["timesteps"] >= 64
+    cfg = tmp_path / "sbx_ppo.yaml"
+    assert train_main(["--algo", "sbx_ppo", "--mode", "residual", "--timesteps", "192", "--config", str(cfg),
+                       "--out", str(runs["sbx_ppo"]), "--resume", "--no-progress"]) == 0
+    assert json.loads((runs["sbx_ppo"] / "metadata.json").read_text())["timesteps"] >= 192
+    model, meta, norm = load_agent(runs["sbx_ppo"] / "model.zip")
+    assert type(model).__module__.startswith("sbx.")
+    sc = preset("paper-0.1hz")
+    sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration=0.05))
+    trajs = list(agent_episodes(model, meta, norm, [sc], threads=1))
+    assert len(trajs) == 1 and trajs[0].q.shape[0] == 50 and np.isfinite(trajs[0].q).all()

@@ -254,7 +254,17 @@ def test_code_numba_cannot_compile_is_reported_against_the_plug_in():
 def test_blf_gym_does_not_import_controllers_or_learning_libraries():
     code = ("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.registry, sys; "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('baselines', 'agents', 'torch', 'stable_baselines3')); "
+            "('baselines', 'agents', 'torch', 'stable_baselines3', 'ray', 'jax', 'sbx')); "
+            "assert not bad, bad")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+
+
+def test_the_training_and_evaluation_commands_do_not_import_ray_or_jax():
+    # the sweep and jax extras are optional: blf-train and blf-eval import them only for an
+    # algorithm that needs them (listing the registered algorithms loads none)
+    code = ("import agents.train, agents.evaluate, agents.loading, sys; agents.loading.available_algorithms(); "
+            "agents.train._parser(); bad = sorted(m for m in sys.modules if m.split('.')[0] in ('ray', 'jax', 'sbx')); "
             "assert not bad, bad")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
