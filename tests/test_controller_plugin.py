@@ -251,32 +251,29 @@ def test_code_numba_cannot_compile_is_reported_against_the_plug_in():
     assert "'pyobj'" in msg
 
 
-def test_blf_gym_does_not_import_controllers_or_learning_libraries():
-    code = ("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.registry, sys; "
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
-            "('baselines', 'agents', 'torch', 'stable_baselines3', 'ray', 'jax', 'sbx')); "
+def _imports_none_of(setup: str, roots: tuple[str, ...]) -> None:
+    """Run ``setup`` in a fresh interpreter; fail if any module under ``roots`` got imported."""
+    code = (f"import sys; {setup}; bad = sorted(m for m in sys.modules if m.split('.')[0] in {roots!r}); "
             "assert not bad, bad")
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
+
+
+def test_blf_gym_does_not_import_controllers_or_learning_libraries():
+    _imports_none_of("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.registry",
+                     ("baselines", "agents", "torch", "stable_baselines3", "ray", "jax", "sbx"))
 
 
 def test_the_training_and_evaluation_commands_do_not_import_ray_or_jax():
     # the sweep and jax extras are optional: blf-train and blf-eval import them only for an
     # algorithm that needs them (listing the registered algorithms loads none)
-    code = ("import agents.train, agents.evaluate, agents.loading, sys; agents.loading.available_algorithms(); "
-            "agents.train._parser(); bad = sorted(m for m in sys.modules if m.split('.')[0] in ('ray', 'jax', 'sbx')); "
-            "assert not bad, bad")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
+    _imports_none_of("import agents.train, agents.evaluate, agents.loading; agents.loading.available_algorithms(); "
+                     "agents.train._parser()", ("ray", "jax", "sbx"))
 
 
 def test_blf_reproduce_module_does_not_import_torch():
     # baselines.reproduce's docstring: torch and stable-baselines3 are never imported on this path
-    code = ("import baselines.reproduce, sys; "
-            "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('agents', 'torch', 'stable_baselines3')); "
-            "assert not bad, bad")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr
+    _imports_none_of("import baselines.reproduce", ("agents", "torch", "stable_baselines3"))
 
 
 def test_pairs_with_is_deprecated_and_the_signals_decide_the_pairing():
