@@ -126,6 +126,13 @@ def _generate_accumulate():
 accumulate_sample = _generate_accumulate()
 
 
+WVEC_HEAD = ("relative", "relative_cap", "alive", "violation", "terminate_on_violation")
+"""The first entries of :meth:`RewardWeights.pack`'s vector, which :func:`step_outputs` reads; each
+term's weight follows, in the order of TERMS."""
+W_RELATIVE, W_CAP, W_ALIVE, W_VIOLATION, W_TERMINATE = range(len(WVEC_HEAD))
+_W0 = len(WVEC_HEAD)  # the first term's weight
+
+
 @dataclass(frozen=True)
 class _Weights:
     """Per-agent-step reward r = alive - sum_k w_k E_k + score * (phi_k - phi_{k-1}) - violation *
@@ -209,10 +216,11 @@ class _Weights:
         return 0.0 if cost is None else cost
 
     def pack(self, terminate_on_violation: bool) -> np.ndarray:
-        """The weights as :func:`step_outputs` reads them (``wvec``): [relative, relative_cap, alive,
-        violation, terminate_on_violation], then each term's weight in the order of TERMS."""
-        return np.array([float(self.relative), self.relative_cap, self.alive, self.violation,
-                         float(terminate_on_violation), *(getattr(self, t.name) for t in TERMS)])
+        """The weights as :func:`step_outputs` reads them (``wvec``): the entries of WVEC_HEAD, then
+        each term's weight in the order of TERMS."""
+        head = {"relative": float(self.relative), "relative_cap": self.relative_cap, "alive": self.alive,
+                "violation": self.violation, "terminate_on_violation": float(terminate_on_violation)}
+        return np.array([*(head[k] for k in WVEC_HEAD), *(getattr(self, t.name) for t in TERMS)])
 
     def check_episode(self, max_episode_steps: int) -> None:
         """Raise ValueError unless ending early by a violation never pays (see the class doc)."""
@@ -248,7 +256,6 @@ R_REWARD, R_TERMINATED, R_TRUNCATED, R_VIOLATED, R_PENALTY, R_ALIVE = range(6)
 R_TERM0 = 6
 """The row of the first term of TERMS."""
 _N_TERMS = len(TERMS)
-_W0 = 5  # the first term's weight in wvec
 
 
 @njit(cache=True, error_model="numpy")
@@ -258,9 +265,9 @@ def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
     Returns flags: 1 if any arm's episode ended, 2 if any diverged."""
     N = status.shape[0]
     n = law_e2.shape[1]
-    relative = wvec[0] > 0.0
-    cap, alive, w_violation = wvec[1], wvec[2], wvec[3]
-    terminate_on_violation = wvec[4] > 0.0
+    relative = wvec[W_RELATIVE] > 0.0
+    cap, alive, w_violation = wvec[W_CAP], wvec[W_ALIVE], wvec[W_VIOLATION]
+    terminate_on_violation = wvec[W_TERMINATE] > 0.0
     flags = 0
     for b in range(N):
         samples = max(sums[b, SUM_SAMPLES], 1.0)
