@@ -60,6 +60,7 @@ plant's acceleration, ``Observer.rhs``, ``Controller.update``. A bad plug-in is 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import inspect
 import math
@@ -201,6 +202,17 @@ _RESERVED = {*BASE_SIGNALS, "u", "state", "dstate", "residual"}
 _SIZE = re.compile(r"^\s*(\d*)\s*\*?\s*n\s*$")
 
 
+@functools.lru_cache(maxsize=256)
+def _offsets(owner: str, parts: tuple[tuple[str, Any], ...], n: int) -> tuple[tuple[str, tuple[int, int]], ...]:
+    """(name, (offset, size)) of each declared part, in order, for n joints."""
+    out, o = [], 0
+    for k, s in parts:
+        m = size_of(s, n, owner)
+        out.append((k, (o, m)))
+        o += m
+    return tuple(out)
+
+
 def size_of(spec: Any, n: int, what: str) -> int:
     """An entry count from its declaration: an int >= 0, or ``"n"``, ``"2n"``, ``"2*n"``."""
     if isinstance(spec, bool) or not isinstance(spec, (int, np.integer, str)):
@@ -329,13 +341,13 @@ class _PluginBase:
         return f"{self.kind} {self.name!r}"
 
     def _layout(self, parts: Mapping[str, Any], n: int) -> dict[str, tuple[int, int]]:
-        """(offset, size) of each declared part, in order, for n joints."""
-        out, o = {}, 0
-        for k, s in parts.items():
-            m = size_of(s, n, self.owner)
-            out[k] = (o, m)
-            o += m
-        return out
+        """(offset, size) of each declared part, in order, for n joints (a new dict; the offsets
+        are worked out once per declaration and n, since every reset asks for them)."""
+        items = tuple(parts.items())
+        try:
+            return dict(_offsets(self.owner, items, n))
+        except TypeError:  # an unhashable size: size_of refuses it by name
+            return dict(_offsets.__wrapped__(self.owner, items, n))
 
     def state_size(self, n: int) -> int:
         return sum(m for _, m in self._layout(self.states, n).values())

@@ -120,6 +120,8 @@ def check_real(owner: str, name: str, value: Any, lo: float | None = None, hi: f
     ``"<owner>.<name> must be a finite real number ..., got <repr>"``. Bools, strings and
     complex numbers are refused; numpy integer and float scalars are accepted, a float32 or float16
     as the decimal it prints as (np.float32(0.01) is 0.01, not 0.009999999776)."""
+    if type(value) is float and math.isfinite(value) and (lo is None or value > lo) and (hi is None or value < hi):
+        return value  # the common case, checked in full below only when it is not this one
     if value is None and none_ok:
         return None
     v = math.nan
@@ -194,6 +196,9 @@ def check_reals(owner: str, name: str, value: Any, length: int | None = None,
         raise refuse("")
     if (length is not None and len(items) != length) or len(items) < min_length:
         raise refuse(f"{len(items)} entries: ")
+    if all(type(v) is float and math.isfinite(v) and (lo is None or v > lo) and (hi is None or v < hi)
+           for v in items):
+        return tuple(items)  # the common case (check_real's own fast path, without a label per entry)
     return tuple(check_real(owner, f"{name}[{i}]", v, lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit)
                  for i, v in enumerate(items))
 
