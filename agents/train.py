@@ -93,10 +93,11 @@ def _make_progress_callback(total: int, start: int, enabled: bool):
 
 
 def _schedule(spec: str, where: str):
-    """``"lin_<x>"``: a value decaying linearly from x to 0 over training (rl-zoo's notation)."""
+    """``"lin_<x>"``: a value decaying linearly from x to 0 over training (rl-zoo's notation); a
+    number written as text (YAML 1.1 reads ``3e-4`` as the string "3e-4") is that constant."""
     try:
         if not spec.startswith("lin_"):
-            raise ValueError
+            return float(spec)
         start = float(spec[4:])
     except ValueError:
         raise ValueError(f"{where} must be a number or 'lin_<number>' (linear decay to 0), got {spec!r}") from None

@@ -18,7 +18,7 @@ seconds, shares and end-to-end agent steps/s. Measure alone: two runs at once sh
 two cores.
 
 Run:  python benchmarks/bench_train.py [--algo ppo] [--mode residual] [--timesteps 65536]
-                                       [--set KEY=VALUE ...] [--json out.json]
+                                       [--config FILE] [--set KEY=VALUE ...] [--json out.json]
 """
 
 from __future__ import annotations
@@ -59,6 +59,8 @@ def main() -> None:
     p.add_argument("--algo", default="ppo", help="a registered algorithm (default ppo)")
     p.add_argument("--mode", default="residual", help="plain or residual (default residual)")
     p.add_argument("--timesteps", type=int, default=65_536, help="agent steps (default 65536)")
+    p.add_argument("--config", type=Path, default=None,
+                   help="a config YAML, as blf-train's --config (default: the algorithm's shipped config)")
     p.add_argument("--set", action="append", default=[], dest="overrides", metavar="KEY=VALUE",
                    help="config overrides, as blf-train's --set (default: the shipped config as it is)")
     p.add_argument("--json", type=Path, default=None, help="also write the figures here (default: print only)")
@@ -90,7 +92,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         out = train(algo=args.algo, mode=args.mode, timesteps=args.timesteps, out=Path(tmp) / "run", progress=False,
-                    overrides=args.overrides, scenario="randomized")
+                    config=args.config, overrides=args.overrides, scenario="randomized")
         wall = time.perf_counter() - t0
         meta = json.loads((out / "metadata.json").read_text())
     steps = int(meta["timesteps"])

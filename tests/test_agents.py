@@ -488,6 +488,9 @@ def test_linear_schedules_in_configs(tmp_path):
     assert f(1.0) == pytest.approx(3e-4) and f(0.5) == pytest.approx(1.5e-4) and f(0.0) == 0.0
     with pytest.raises(ValueError, match="lin_<number>"):
         _schedule("cosine_1e-3", "x")
+    # YAML 1.1 reads 3e-4 (no dot) as the string "3e-4": it is the constant 3e-4, not an error
+    import yaml
+    assert yaml.safe_load("lr: 3e-4")["lr"] == "3e-4" and _schedule("3e-4", "x") == 3e-4
     cfg = tmp_path / "ppo.yaml"
     cfg.write_text(TINY.format(normalize="true", hyper="{n_steps: 32, batch_size: 32, n_epochs: 1, "
                                                      "learning_rate: lin_0.001}"))
