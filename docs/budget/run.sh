@@ -1,0 +1,32 @@
+#!/usr/bin/env bash
+# One stage of a long training run that may span several jobs (docs/budget.md).
+#
+#   docs/budget/run.sh OUT STEPS [blf-train options for a new run ...]
+#
+# Starts the run in OUT when OUT holds none; otherwise resumes it from its newest complete
+# checkpoint and trains it up to STEPS agent steps in total (a run already at STEPS is left as it
+# is). Repeat the same command in the next job until it reports the run complete. A job that is
+# killed loses at most the steps since its last checkpoint (the config's checkpoint_freq).
+#
+# Each job should give the run whole cores: the env and the learner each use one thread here, set
+# by the variables below (two runs at once on two cores).
+set -euo pipefail
+if [ "$#" -lt 2 ]; then
+    echo "usage: $0 OUT STEPS [blf-train options for a new run]" >&2
+    exit 2
+fi
+out=$1
+steps=$2
+shift 2
+export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
+export XLA_FLAGS=${XLA_FLAGS:-"--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
+newest=$(ls "$out/checkpoints" 2>/dev/null | sed -n 's/^step_\([0-9]*\)$/\1/p' | sort -n | tail -n 1)
+if [ -n "$newest" ] && [ "$newest" -ge "$steps" ]; then
+    echo "$out: its newest checkpoint has $newest steps (>= $steps); this stage is done" >&2
+    exit 0
+fi
+if [ -f "$out/metadata.json" ] || [ -d "$out/checkpoints" ]; then
+    exec blf-train --resume --out "$out" --timesteps "$steps" --no-progress
+else
+    exec blf-train --out "$out" --timesteps "$steps" --no-progress "$@"
+fi
