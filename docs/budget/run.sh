@@ -20,7 +20,14 @@ steps=$2
 shift 2
 export OMP_NUM_THREADS=${OMP_NUM_THREADS:-1}
 export XLA_FLAGS=${XLA_FLAGS:-"--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1"}
-newest=$(ls "$out/checkpoints" 2>/dev/null | sed -n 's/^step_\([0-9]*\)$/\1/p' | sort -n | tail -n 1)
+newest=""  # the newest complete checkpoint's steps (its folder is checkpoints/step_<steps>)
+if [ -d "$out/checkpoints" ]; then
+    for d in "$out"/checkpoints/step_*; do
+        n=${d##*/step_}
+        case "$n" in ''|*[!0-9]*) continue ;; esac
+        if [ -z "$newest" ] || [ "$n" -gt "$newest" ]; then newest=$n; fi
+    done
+fi
 if [ -n "$newest" ] && [ "$newest" -ge "$steps" ]; then
     echo "$out: its newest checkpoint has $newest steps (>= $steps); this stage is done" >&2
     exit 0
