@@ -1,8 +1,11 @@
 #!/usr/bin/env bash
-# The runs of docs/budget.md, in order, as two chains of stages (one per core):
+# The runs of docs/budget.md, as chains of stages (at most two chains at once on two cores):
 #
 #   docs/budget/plan.sh A RUNS_DIR     # the replaced configuration: SB3 PPO, seeds 0-2, 2^21 steps
-#   docs/budget/plan.sh B RUNS_DIR     # the large-batch candidate: seeds 0-2 to 2^21, then 50M / 20M
+#   docs/budget/plan.sh B RUNS_DIR     # candidate 1 (sbx_ppo_PlanarBLF-v0.yaml): seeds 0-2, 2^21 steps
+#   docs/budget/plan.sh C RUNS_DIR     # candidate 2 (budget/sbx_ppo_256.yaml): seeds 0-2, 2^21 steps
+#   docs/budget/plan.sh D RUNS_DIR NAME  # the scale runs of the candidate NAME (sbx_ppo or sbx_ppo_256)
+#                                        # chosen by the rule of docs/budget.md: seed 0 to 50M, 1-2 to 20M
 #
 # Every stage resumes where the last job stopped (docs/budget/run.sh), so the same command is
 # repeated in each job until the chain is done.
@@ -32,11 +35,20 @@ B)
         "$here/run.sh" "$runs/sbx_ppo_s$s" $equal --algo sbx_ppo --mode plain --scenario randomized --seed $s \
             --name "sbx_ppo_s$s"
         keep "$runs/sbx_ppo_s$s" "$runs/equal/sbx_ppo_s$s"
-    done
-    "$here/run.sh" "$runs/sbx_ppo_s0" 50000000
-    "$here/run.sh" "$runs/sbx_ppo_s1" 20000000
-    "$here/run.sh" "$runs/sbx_ppo_s2" 20000000 ;;
+    done ;;
+C)
+    for s in 0 1 2; do
+        "$here/run.sh" "$runs/sbx_ppo_256_s$s" $equal --algo sbx_ppo --mode plain --scenario randomized --seed $s \
+            --config "$here/../../agents/configs/budget/sbx_ppo_256.yaml" --name "sbx_ppo_256_s$s"
+        keep "$runs/sbx_ppo_256_s$s" "$runs/equal/sbx_ppo_256_s$s"
+    done ;;
+D)
+    name=${3:?"plan.sh D needs the chosen candidate's name (sbx_ppo or sbx_ppo_256)"}
+    for s in 0 1 2; do keep "$runs/${name}_s$s" "$runs/equal/${name}_s$s"; done
+    "$here/run.sh" "$runs/${name}_s0" 50000000
+    "$here/run.sh" "$runs/${name}_s1" 20000000
+    "$here/run.sh" "$runs/${name}_s2" 20000000 ;;
 *)
-    echo "usage: $0 A|B RUNS_DIR" >&2
+    echo "usage: $0 A|B|C RUNS_DIR, or $0 D RUNS_DIR NAME" >&2
     exit 2 ;;
 esac
