@@ -596,3 +596,32 @@ def test_sbx_algorithms_train_resume_and_are_judged_by_name(tmp_path):
     sc = dataclasses.replace(sc, sim=dataclasses.replace(sc.sim, duration=0.05))
     trajs = list(agent_episodes(model, meta, norm, [sc], threads=1))
     assert len(trajs) == 1 and trajs[0].q.shape[0] == 50 and np.isfinite(trajs[0].q).all()
+
+
+def test_the_multi_job_recipe_starts_resumes_and_then_leaves_a_run_alone(tmp_path):
+    """docs/budget/run.sh, the README's recipe for a run split over several jobs: the same command
+    starts the run, then extends it from its newest checkpoint (a second segment), then sees it
+    done and trains nothing."""
+    import os
+    import subprocess
+    import sys
+
+    script = Path(__file__).resolve().parents[1] / "docs" / "budget" / "run.sh"
+    out, cfg = tmp_path / "run", str(_tiny(tmp_path, "ppo"))
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+
+    def job(steps: int) -> str:
+        p = subprocess.run(["bash", str(script), str(out), str(steps), "--algo", "ppo", "--config", cfg],
+                           capture_output=True, text=True, env=env, timeout=600)
+        assert p.returncode == 0, p.stderr[-2000:]
+        return p.stderr
+
+    job(64)
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["timesteps"] == 64 and len(meta["segments"]) == 1 and meta["completed"]
+    job(128)
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["timesteps"] == 128 and meta["resumed"]
+    assert [(s["start_timesteps"], s["end_timesteps"]) for s in meta["segments"]] == [(0, 64), (64, 128)]
+    assert "this stage is done" in job(128)
+    assert len(json.loads((out / "metadata.json").read_text())["segments"]) == 2
