@@ -21,10 +21,10 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from blf_gym import ENV_IDS
-from blf_gym.params import is_integer
+from blf_gym.params import check_int, check_real, is_integer
 
 __all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "SET_HELP", "add_config_options",
-           "apply_overrides", "check_config", "env_keys", "parse_overrides", "set_dotted", "shipped_config"]
+           "apply_overrides", "check_config", "curriculum_scale", "env_keys", "parse_overrides", "set_dotted", "shipped_config"]
 
 CONFIG_DIR = Path(__file__).resolve().parent / "configs"
 """The shipped training configs, ``<algo>_<env id>.yaml``."""
@@ -60,6 +60,11 @@ class TrainConfig:
     """The policy's keyword arguments (``net_arch``, ``log_std_init``, ...)."""
     action_noise_std: float | None = field(default=None, metadata={"kind": "nonneg"})
     """Gaussian exploration noise of off-policy algorithms, in action units (>= 0)."""
+    curriculum: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "mapping"})
+    """A funnel-width curriculum (:func:`curriculum_scale`): ``{bound_scale: S, until: T}`` trains
+    the first episodes with bounds S times as wide (1 < S <= 15) and shrinks them geometrically to
+    the benchmark's own by agent step T (>= 1), and at 1 from then on; empty (the default): none.
+    Learning curves and blf-eval always score at the benchmark's bounds."""
     eval_freq: int = field(default=20_000, metadata={"kind": "count"})
     """Agent steps between two learning-curve points (>= 1)."""
     curve_suite_seeds: int = field(default=4, metadata={"kind": "count"})
@@ -78,7 +83,29 @@ class TrainConfig:
         tc = cls(**{k: v for k, v in cfg.items() if v is not None})
         if tc.normalize_reward and not tc.normalize:
             raise ValueError(f"{where}: normalize_reward needs normalize: true")
+        if tc.curriculum:
+            _check_curriculum(tc.curriculum, where)
         return tc
+
+
+def _check_curriculum(cur: Mapping[str, Any], where: str) -> None:
+    from blf_gym.envcore import MAX_BOUND_SCALE
+
+    if set(cur) != {"bound_scale", "until"}:
+        raise ValueError(f"{where}: curriculum takes exactly bound_scale and until, got {sorted(cur)}")
+    check_real(f"{where}: curriculum", "bound_scale", cur["bound_scale"], lo=1.0, hi=MAX_BOUND_SCALE,
+               lo_open=True, hint=" (the funnel's width at the start, in multiples of the benchmark's)")
+    check_int(f"{where}: curriculum", "until", cur["until"], lo=1,
+              hint=" (the agent step by which the bounds are the benchmark's)")
+
+
+def curriculum_scale(cur: Mapping[str, Any], steps: int) -> float:
+    """The funnel's width factor at agent step ``steps`` of a curriculum ``{bound_scale: S,
+    until: T}``: ``S ** (1 - steps / T)`` before T (geometric: each stretch of T/10 steps narrows it
+    by the same ratio), exactly 1 from T on; 1 without a curriculum."""
+    if not cur or steps >= cur["until"]:
+        return 1.0
+    return float(cur["bound_scale"]) ** (1.0 - steps / float(cur["until"]))
 
 
 CONFIG_KEYS = tuple(f.name for f in dataclasses.fields(TrainConfig))

@@ -39,9 +39,9 @@ __all__ = ["algorithm_class", "available_algorithms", "check_agent_folder", "loa
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 
 SCORING_REPLACES = ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
-                    "terminate_on_violation")
+                    "terminate_on_violation", "bound_scale")
 """env kwargs that blf-eval's ``evaluate_agent`` replaces: the scenarios are given, the reward is
-not needed, termination is off."""
+not needed, termination is off, the bounds are the benchmark's own (``bound_scale`` 1)."""
 
 
 def available_algorithms() -> list[str]:
@@ -346,6 +346,7 @@ def load_pretrained(name: str | Path, scenario: str | None = None, reward: str =
     model, meta, norm = load_agent(path)
     kw = dict(meta["env_kwargs"])
     kw.pop("threads", None)
+    kw.pop("bound_scale", None)  # a training curriculum's; the agent is judged at the benchmark's bounds
     if reward == "score":
         kw.pop("reward_weights", None)
     else:

@@ -39,7 +39,8 @@ import numpy as np
 from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json
 
-from .config import RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, parse_overrides, shipped_config
+from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, curriculum_scale,
+                     parse_overrides, shipped_config)
 
 __all__ = ["main", "load_config", "train"]
 
@@ -178,6 +179,31 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
                 self._evaluate()
 
     return _Curve()
+
+
+def _make_curriculum_callback(cur: dict[str, Any]):
+    """Sets the training env's ``bound_scale`` to :func:`agents.config.curriculum_scale` of the
+    step count before every step (it applies at each arm's next reset); a function of the step
+    count alone, so a resumed run continues the same schedule."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _Curriculum(BaseCallback):
+        def _set(self) -> None:
+            scale = curriculum_scale(cur, self.num_timesteps)
+            if scale != self.scale:
+                self.training_env.set_attr("bound_scale", scale)
+                self.scale = scale
+                self.logger.record("curriculum/bound_scale", scale)
+
+        def _on_training_start(self) -> None:
+            self.scale = None
+            self._set()
+
+        def _on_step(self) -> bool:
+            self._set()
+            return True
+
+    return _Curriculum()
 
 
 def _read_metadata(path: Path) -> dict[str, Any]:
@@ -413,7 +439,15 @@ def train(
     torch.set_num_threads(1)
     cls = algorithm_class(run.algo)
     n_envs = tc.n_envs
-    venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs}))
+    start_env: dict[str, Any] = {}
+    if tc.curriculum:
+        if "bound_scale" in tc.env:
+            raise ValueError(f"{_where(cfg_file)}: env.bound_scale and curriculum both set the funnel's width; "
+                             "keep one")
+        # the first episodes at the curriculum's width (of the run's last recorded step on a resume)
+        start_env["bound_scale"] = curriculum_scale(tc.curriculum, int((prior or {}).get("timesteps", 0))
+                                                    if resume else 0)
+    venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs, **start_env}))
     model, start_steps, prior_model_wall = None, 0, 0.0
     if resume:
         model, start_steps, prior_model_wall = _restore(cls, venv, ckpt_dir, normalize, out)
@@ -485,6 +519,8 @@ def train(
                              tc.curve_suite_seeds, clock, on_point=record),
         _make_progress_callback(timesteps, start_steps, progress),
     ]
+    if tc.curriculum:
+        callbacks.append(_make_curriculum_callback(tc.curriculum))
     remaining = max(0, timesteps - start_steps)
     interrupted = False
     try:

@@ -175,7 +175,9 @@ class PlanarBLFEnv(gym.Env):
     ``render_mode`` ("rgb_array" or "human"), ``record`` (False; True keeps the episode's
     1 ms signals for :meth:`trajectory`), ``record_channels`` (the names of
     :data:`blf_gym.simulate.CHANNELS` kept with ``record``, default all; fewer keep less
-    memory). ``reset(options=...)`` takes the same variations per episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
+    memory), ``bound_scale`` (1; a training curriculum's factor on the funnel's width, at most
+    15, also settable between episodes as ``env.unwrapped.bound_scale``; the benchmark is 1).
+    ``reset(options=...)`` takes the same variations per episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
     step, as the sampled baseline policies use); steps without a 1 ms sample then have no
     tracking or torque term in their reward.
 
@@ -229,6 +231,17 @@ class PlanarBLFEnv(gym.Env):
     @spec.setter
     def spec(self, value) -> None:
         self._spec = self.core.with_episode_length(value)
+
+    @property
+    def bound_scale(self) -> float:
+        """The factor on the funnel's width of the episodes started from now on (a training
+        curriculum's knob, 1 to 15; 1, the default, is the benchmark): see
+        :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
+        return self.core.bound_scale
+
+    @bound_scale.setter
+    def bound_scale(self, value: float) -> None:
+        self.core.bound_scale = value
 
     @property
     def max_episode_steps(self) -> int:

@@ -20,17 +20,22 @@ from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_i
 from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
-from .scenarios import SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite
+from .scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
+                        widen_bounds)
 from .simulate import CHANNELS, ClosedLoop, divergence_message
 from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
                      ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
-__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
+__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_BOUND_SCALE", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
            "observation_index", "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
 
 
+MAX_BOUND_SCALE = 15.0
+"""The widest funnel a training curriculum may ask for (``bound_scale``): 15 times the paper's is
+0.3 and 0.6 rad at the floors, and keeps the observation's bound entries inside their boxes
+(k_b(0) = 15 x 0.64 = 9.6 rad of at most 10)."""
 MAX_ARMS = 65_536
 """Most arms in one env core (``num_envs``). Every arm keeps its episode's arrays (the default score
 reward's reference, 0.7 MB per arm at 30 s); larger batches are refused at construction, not
@@ -319,6 +324,7 @@ class EnvCore:
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
         observation_extras: Sequence[str] = (),
         residual_filter: str | None = None,
+        bound_scale: float = 1.0,
         threads: int | None = None,
         record: bool = False,
         record_channels: Sequence[str] | None = None,
@@ -348,6 +354,7 @@ class EnvCore:
         dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
                         hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
         threads = check_int(o, "threads", threads, lo=1, none_ok=True)
+        self.bound_scale = bound_scale  # checked by the property's setter
         self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
         self._set_period(control_period)
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
@@ -362,6 +369,20 @@ class EnvCore:
         self._set_observation(observation_extras)
         self._allocate()
         self._threads = threads
+
+    @property
+    def bound_scale(self) -> float:
+        """A training aid, never the benchmark: the factor on the funnel's amplitudes and floors
+        (k_a, k_b) of every episode the env starts from now on (1 to :data:`MAX_BOUND_SCALE`;
+        default 1, the benchmark's own bounds). A curriculum starts wide and lowers it to 1
+        (``agents.train``'s ``curriculum``); setting it takes effect at each arm's next reset.
+        blf-eval and the learning curves always score at 1."""
+        return self._bound_scale
+
+    @bound_scale.setter
+    def bound_scale(self, value: float) -> None:
+        self._bound_scale = check_real(self.owner, "bound_scale", value, lo=1.0, hi=MAX_BOUND_SCALE,
+                                       hint=" (a factor on the funnel's width; 1 is the benchmark's)")
 
     def _set_scenario(self, scenario: "str | Scenario", duration: float | None, max_torque: float | None,
                       dt: float | None, variations: Mapping[str, Any] | None, angle_noise_std: float | None) -> None:
@@ -554,6 +575,8 @@ class EnvCore:
             raise ValueError("one scenario per reset arm is required")
         options = self.check_options(options)
         scs = list(scenarios) if scenarios is not None else [self.scenario_for(self.rngs[i], options) for i in idx]
+        if self._bound_scale != 1.0:
+            scs = [widen_bounds(sc, self._bound_scale) for sc in scs]
         for i, sc in zip(idx, scs):
             self.scenarios[i] = sc
             self._durations[i] = sc.sim.duration

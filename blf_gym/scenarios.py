@@ -50,7 +50,7 @@ from .params import PRESETS, Scenario, check_bool, check_real, is_real, preset, 
 
 __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
            "STRESS_SEED_OFFSET", "UNITS", "apply_variations", "check_variations", "sample_suite",
-           "outside_training", "resolve_scenario", "SUITES"]
+           "outside_training", "resolve_scenario", "SUITES", "widen_bounds"]
 
 
 @dataclass(frozen=True)
@@ -288,6 +288,17 @@ def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool
     for top, new in parts.items():
         changes[top] = replace(getattr(base, top), **new) if isinstance(new, dict) else new
     return replace(base, **changes) if changes else base
+
+
+def widen_bounds(scenario: Scenario, scale: float) -> Scenario:
+    """``scenario`` with its funnel ``scale`` times as wide: both bounds' amplitudes and floors
+    multiplied by ``scale`` (> 0), the decay rate kept. A training curriculum's tool
+    (``bound_scale``); the benchmark's bounds are the scenario's own."""
+    b = scenario.bounds
+    return replace(scenario, bounds=replace(b, upper_amplitude=b.upper_amplitude * scale,
+                                            upper_floor=b.upper_floor * scale,
+                                            lower_amplitude=b.lower_amplitude * scale,
+                                            lower_floor=b.lower_floor * scale))
 
 
 def _own_stream(rng: np.random.Generator, name: str) -> np.random.Generator:

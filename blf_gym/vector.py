@@ -94,6 +94,17 @@ class PlanarBLFVectorEnv(VectorEnv):
     def spec(self, value) -> None:
         self._spec = self.core.with_episode_length(value)
 
+    @property
+    def bound_scale(self) -> float:
+        """The factor on the funnel's width of the episodes started from now on (a training
+        curriculum's knob, 1 to 15; 1, the default, is the benchmark): see
+        :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
+        return self.core.bound_scale
+
+    @bound_scale.setter
+    def bound_scale(self, value: float) -> None:
+        self.core.bound_scale = value
+
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         """Reset every arm. ``seed`` s (an int or numpy integer >= 0) seeds arm i with s + i; or
         give a list of one seed per arm (each an integer >= 0, or None to continue its stream).
