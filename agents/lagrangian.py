@@ -24,9 +24,10 @@ add up). On top of SB3's :class:`~stable_baselines3.PPO`, with everything else u
 
       A = (A_r - lambda * A_c) / (1 + lambda)
 
-  With ``normalize_advantage`` (PPO's default, on) ``A_r`` and ``A_c`` are each standardised
-  over the whole rollout first and the combination is used as it is; PPO's own per-minibatch
-  normalisation is skipped, since it would undo the ``1 / (1 + lambda)`` scale.
+  With ``normalize_advantage`` (PPO's default, on) ``A_r`` is standardised over the whole
+  rollout and ``A_c`` only centred (its scale, in cost units, is what lambda weighs; OmniSafe does
+  the same), and the combination is used as it is; PPO's own per-minibatch normalisation is
+  skipped, since it would undo the ``1 / (1 + lambda)`` scale.
 
 The multiplier, the cost critic and its optimizer are saved and loaded with SB3's ``save`` and
 ``load``; ``predict`` is PPO's. The multiplier and the episode cost go to the SB3 logger
@@ -236,7 +237,9 @@ class PPOLagrangian(PPO):
         normalize = self.normalize_advantage
         if normalize:
             adv_r = (adv_r - adv_r.mean()) / (adv_r.std() + 1e-8)
-            adv_c = (adv_c - adv_c.mean()) / (adv_c.std() + 1e-8)
+            # centred, not scaled: scaled to unit spread, a cost advantage that is all critic noise
+            # (a rollout where no step costs, or every step does) would weigh as much as a real one
+            adv_c = adv_c - adv_c.mean()
         # buf.returns (the value net's target) were computed before; only the surrogate changes
         buf.advantages = penalized_advantage(adv_r, adv_c, self.lagrangian_multiplier).astype(np.float32)
         self.normalize_advantage = False

@@ -207,9 +207,85 @@ def test_ppo_is_given_the_penalized_advantage(monkeypatch):
         return (a - a.mean()) / (a.std() + 1e-8)
 
     assert np.abs(seen["adv_c"]).max() > 0.1  # the toy's costs give a cost advantage
-    np.testing.assert_allclose(seen["adv"], (std(seen["adv_r"]) - lam * std(seen["adv_c"])) / (1 + lam),
-                               rtol=1e-5, atol=1e-6)
+    # the reward's advantage standardised, the cost's only centred (its scale is what lambda weighs)
+    np.testing.assert_allclose(seen["adv"], (std(seen["adv_r"]) - lam * (seen["adv_c"] - seen["adv_c"].mean()))
+                               / (1 + lam), rtol=1e-5, atol=1e-6)
     assert seen["normalize"] is False and m.normalize_advantage is True  # restored after the update
+
+
+class _Costly(gym.Env):
+    """The same observation forever, cost 1 on every step, truncated every 10 steps: a continuing
+    task whose discounted cost-to-go is 1 / (1 - gamma) in every state."""
+
+    observation_space = gym.spaces.Box(-1.0, 1.0, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.full(2, 0.5, np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        return np.full(2, 0.5, np.float32), 0.0, False, self.t >= 10, {"cost": 1.0}
+
+
+def test_the_cost_critic_learns_the_known_cost_to_go():
+    # gamma 0.8: V_c = 1 / (1 - 0.8) = 5 in every state, time-limit truncations bootstrapped
+    venv = VecMonitor(DummyVecEnv([_Costly, _Costly]))
+    m = PPOLagrangian("MlpPolicy", venv, n_steps=50, batch_size=50, n_epochs=10, gamma=0.8, gae_lambda=0.95,
+                      learning_rate=3e-3, lagrangian_lr=0.0, policy_kwargs={"net_arch": [16]}, seed=0,
+                      device="cpu")
+    m.learn(6000)
+    assert m._cost_values(np.full((1, 2), 0.5, np.float32))[0] == pytest.approx(5.0, rel=0.03)
+
+
+class _Velocity(gym.Env):
+    """A point on a line (Safety-Gymnasium's velocity tasks in one dimension, where PPO-Lagrangian
+    is known to work): the reward is its velocity, the cost 1 on every step faster than 0.5. An
+    episode is 50 steps. At full speed (2, after 10 steps) an episode costs 48; the best policy
+    within a cost limit of 5 reaches 0.5 and stays near it, for a return of about 25."""
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (2,), np.float32)
+    action_space = gym.spaces.Box(-1.0, 1.0, (1,), np.float32)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t, self.v = 0, 0.0
+        return np.array([0.0, 0.0], np.float32), {}
+
+    def step(self, action):
+        self.t += 1
+        self.v = float(np.clip(self.v + 0.2 * float(np.clip(action[0], -1.0, 1.0)), -2.0, 2.0))
+        return (np.array([self.v, self.t / 50], np.float32), self.v, False, self.t >= 50,
+                {"cost": float(self.v > 0.5)})
+
+
+def test_on_a_task_where_it_is_known_to_work_it_meets_the_limit_and_still_earns():
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    rollouts = []  # per rollout: the mean cost and return of the episodes that ended in it
+
+    class Log(BaseCallback):
+        def _on_rollout_end(self) -> None:
+            m = self.model
+            if m._rollout_episode_costs:
+                rollouts.append((np.mean(m._rollout_episode_costs),
+                                 np.mean([e["r"] for e in list(m.ep_info_buffer)[-len(m._rollout_episode_costs):]])))
+
+        def _on_step(self) -> bool:
+            return True
+
+    venv = VecMonitor(DummyVecEnv([_Velocity] * 4))
+    m = PPOLagrangian("MlpPolicy", venv, cost_limit=5.0, lagrangian_lr=0.05, n_steps=250, batch_size=250, n_epochs=5,
+                      learning_rate=1e-3, policy_kwargs={"net_arch": [32, 32]}, seed=0, device="cpu")
+    m.learn(50_000, callback=Log())
+    late = np.array(rollouts[len(rollouts) // 2:])
+    cost, ret = late.mean(axis=0)
+    # over the second half of training: the cost near its limit (full speed costs 48), the return
+    # well above that of standing still (0) and near the constrained best (about 25)
+    assert cost <= 7.5, (cost, ret)
+    assert ret >= 15.0, (cost, ret)
 
 
 # ---------------------------------------------------------------- (c) save and load
