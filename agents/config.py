@@ -62,7 +62,7 @@ class TrainConfig:
     """Gaussian exploration noise of off-policy algorithms, in action units (>= 0)."""
     curriculum: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "mapping"})
     """A funnel-width curriculum (:func:`curriculum_scale`): ``{bound_scale: S, until: T}`` trains
-    the first episodes with bounds S times as wide (1 < S <= 15) and shrinks them geometrically to
+    the first episodes with bounds S times as wide (1 < S <= ``blf_gym.envcore.MAX_BOUND_SCALE``) and shrinks them geometrically to
     the benchmark's own by agent step T (>= 1), and at 1 from then on; empty (the default): none.
     Learning curves and blf-eval always score at the benchmark's bounds."""
     eval_freq: int = field(default=20_000, metadata={"kind": "count"})

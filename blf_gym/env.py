@@ -235,8 +235,8 @@ class PlanarBLFEnv(gym.Env):
     @property
     def bound_scale(self) -> float:
         """The factor on the funnel's width of the episodes started from now on (a training
-        curriculum's knob, 1 to 15; 1, the default, is the benchmark): see
-        :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
+        curriculum's knob, 1 to :data:`blf_gym.envcore.MAX_BOUND_SCALE`; 1, the default, is the
+        benchmark): see :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
         return self.core.bound_scale
 
     @bound_scale.setter
