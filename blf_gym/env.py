@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .envcore import EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
+from .envcore import CORE_BOUND_SCALE, EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
 from .params import Scenario, check_int
 
 __all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_residual_controller"]
@@ -232,16 +232,7 @@ class PlanarBLFEnv(gym.Env):
     def spec(self, value) -> None:
         self._spec = self.core.with_episode_length(value)
 
-    @property
-    def bound_scale(self) -> float:
-        """The factor on the funnel's width of the episodes started from now on (a training
-        curriculum's knob, 1 to :data:`blf_gym.envcore.MAX_BOUND_SCALE`; 1, the default, is the
-        benchmark): see :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
-        return self.core.bound_scale
-
-    @bound_scale.setter
-    def bound_scale(self, value: float) -> None:
-        self.core.bound_scale = value
+    bound_scale = CORE_BOUND_SCALE
 
     @property
     def max_episode_steps(self) -> int:

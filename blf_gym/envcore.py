@@ -36,6 +36,13 @@ MAX_BOUND_SCALE = 15.0
 """The widest funnel a training curriculum may ask for (``bound_scale``): 15 times the paper's is
 0.3 and 0.6 rad at the floors, and keeps the observation's bound entries inside their boxes
 (k_b(0) = 15 x 0.64 = 9.6 rad of at most 10)."""
+CORE_BOUND_SCALE = property(
+    lambda env: env.core.bound_scale,
+    lambda env, value: setattr(env.core, "bound_scale", value),
+    doc="""The factor on the funnel's width of the episodes started from now on (a training
+    curriculum's knob, 1 to :data:`MAX_BOUND_SCALE`; 1, the default, is the benchmark), read and
+    set on the env's core: see :attr:`EnvCore.bound_scale`. The single and the vector env both
+    expose it as ``bound_scale``.""")
 MAX_ARMS = 65_536
 """Most arms in one env core (``num_envs``). Every arm keeps its episode's arrays (the default score
 reward's reference, 0.7 MB per arm at 30 s); larger batches are refused at construction, not

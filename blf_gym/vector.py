@@ -26,7 +26,7 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .envcore import EnvCore, check_env_kwargs, warn_if_oversubscribed
+from .envcore import CORE_BOUND_SCALE, EnvCore, check_env_kwargs, warn_if_oversubscribed
 from .params import check_int, is_integer
 
 __all__ = ["PlanarBLFVectorEnv", "default_threads", "make_residual_vector_env"]
@@ -94,16 +94,7 @@ class PlanarBLFVectorEnv(VectorEnv):
     def spec(self, value) -> None:
         self._spec = self.core.with_episode_length(value)
 
-    @property
-    def bound_scale(self) -> float:
-        """The factor on the funnel's width of the episodes started from now on (a training
-        curriculum's knob, 1 to :data:`blf_gym.envcore.MAX_BOUND_SCALE`; 1, the default, is the
-        benchmark): see :attr:`blf_gym.envcore.EnvCore.bound_scale`."""
-        return self.core.bound_scale
-
-    @bound_scale.setter
-    def bound_scale(self, value: float) -> None:
-        self.core.bound_scale = value
+    bound_scale = CORE_BOUND_SCALE
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         """Reset every arm. ``seed`` s (an int or numpy integer >= 0) seeds arm i with s + i; or
