@@ -906,11 +906,13 @@ def compile_notice(label: str, cache: Path) -> None:
 
 
 @contextlib.contextmanager
-def _compile_lock(kernel):
+def _compile_lock(kernel, label: str):
     """Hold an exclusive lock on one kernel's entry in numba's cache while it compiles, so that
     processes started together (pytest workers, sweep trials, subprocess vector envs) compile it
     once: the others wait, then load it from the cache. Without ``fcntl`` (not POSIX) or with a
-    cache folder that cannot hold the lock file, each process compiles its own, as before."""
+    cache folder that cannot hold the lock file, each process compiles its own, as before. ``label``
+    (:func:`kernel_label`'s) names the kernel in the waiting notice: one process may compile one
+    kernel while it waits for another."""
     try:
         import fcntl
     except ImportError:
@@ -931,7 +933,7 @@ def _compile_lock(kernel):
         try:
             fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
-            print("blf-gym: another process is compiling the same closed loop; waiting for it",
+            print(f"blf-gym: another process is compiling the closed loop for {label}; waiting for it",
                   file=sys.stderr, flush=True)
             fcntl.flock(f, fcntl.LOCK_EX)
         try:
@@ -1172,12 +1174,12 @@ class ClosedLoop:
         """Arms per block of the kernel (1 or :data:`LANES`)."""
         self._kernel = _specialise(self.connection, self.lanes)
         fresh = not _is_cached(self._kernel)
+        label = kernel_label(self.controller.name, self.observer.name,
+                             self.residual_filter.name if self.residual_filter else None)
+        # a batch's kernel and a single arm's are two builds of the same code: say which
+        label += ", stepping one arm" if self.lanes == 1 else f", stepping {self.lanes} arms at once"
         if fresh and self._kernel not in _NOTICED:
             _NOTICED.add(self._kernel)
-            label = kernel_label(self.controller.name, self.observer.name,
-                                 self.residual_filter.name if self.residual_filter else None)
-            # a batch's kernel and a single arm's are two builds of the same code: say which
-            label += ", stepping one arm" if self.lanes == 1 else f", stepping {self.lanes} arms at once"
             compile_notice(label, _cache_dir(self._kernel))
         c = self.connection
         self.N = len(scenarios)
@@ -1198,7 +1200,7 @@ class ClosedLoop:
         self._no_record = np.zeros((self.N, 0, N_CHANNELS, n))
         self.set_scenarios(scenarios)
         if fresh:
-            with _compile_lock(self._kernel):
+            with _compile_lock(self._kernel, label):
                 self._compile()  # after another process built it: loaded from numba's cache
 
     def _compile(self) -> None:
