@@ -16,11 +16,12 @@ import numpy as np
 from blf_gym.blocks import Controller, Observer
 from blf_gym.params import ArmParams
 
+from .cbf import cbf_filter
 from .filters import barrier_filter
 from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
 
-__all__ = ["ControllerGains", "ObserverGains", "bc", "lesobc", "proposed", "leso"]
+__all__ = ["ControllerGains", "ObserverGains", "controller_gains", "bc", "lesobc", "proposed", "leso"]
 
 
 def _vector(name: str, value: Any, n: int) -> tuple[float, ...]:
@@ -67,7 +68,8 @@ class ObserverGains:
             raise ValueError(f"ObserverGains.k0 must be a finite number > 0, got {self.k0!r}")
 
 
-def _gains(kwargs: dict[str, Any]) -> ControllerGains:
+def controller_gains(kwargs: dict[str, Any]) -> ControllerGains:
+    """:class:`ControllerGains` from keyword overrides, refusing unknown names by name."""
     valid = {f.name for f in fields(ControllerGains)}
     unknown = set(kwargs) - valid
     if unknown:
@@ -81,21 +83,21 @@ _LESO_STATES = {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n"}
 
 def bc(**kwargs: Any) -> Controller:
     """Backstepping control (full state: reads the true velocity)."""
-    return Controller("bc", bc_output, _gains(kwargs))
+    return Controller("bc", bc_output, controller_gains(kwargs))
 
 
 def lesobc(**kwargs: Any) -> Controller:
     """Backstepping with the LESO's velocity and disturbance estimates."""
-    return Controller("lesobc", lesobc_output, _gains(kwargs),
+    return Controller("lesobc", lesobc_output, controller_gains(kwargs),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n"})
 
 
 def proposed(**kwargs: Any) -> Controller:
     """The paper's LESO + barrier-Lyapunov law; publishes z1 (rad), z2_hat = x2_hat - alpha1 (rad/s)
     and its barrier term (1/rad)."""
-    return Controller("proposed", proposed_output, _gains(kwargs),
+    return Controller("proposed", proposed_output, controller_gains(kwargs),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"},
-                      filters={"barrier": barrier_filter})
+                      filters={"barrier": barrier_filter, "cbf": cbf_filter})
 
 
 def leso(**kwargs: Any) -> Observer:
