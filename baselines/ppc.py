@@ -69,7 +69,7 @@ def ppc_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b,
         r = pa + pb
         s = k_b_dot * pb - k_a_dot * pa - lb + la
         eps_d = r * ed + s
-        r_d = (k_a_dot - ed) * pa * pa - (ed + k_b_dot) * pb * pb
+        r_d = -(k_a_dot - ed) * pa * pa - (ed + k_b_dot) * pb * pb
         s_d = (k_b_ddot * pb - k_b_dot * (ed + k_b_dot) * pb * pb
                - k_a_ddot * pa + k_a_dot * (k_a_dot - ed) * pa * pa - lb_d + la_d)
         g = -K1[i] * eps - s
