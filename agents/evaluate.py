@@ -481,7 +481,7 @@ def _parser() -> argparse.ArgumentParser:
                    help="trained agents: blf-train run folders or their model zips (default: the shipped "
                         "ones in agents/pretrained; none with an empty list)")
     p.add_argument("--residual-filter", default=None, metavar="NAME",
-                   help="run every agent through this residual filter of the proposed law (barrier), its name "
+                   help="run every agent through this residual filter of the proposed law (barrier or cbf), its name "
                         "gaining +NAME, or 'none' to run every agent without one (default: each agent's own, "
                         "from its metadata)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",

@@ -303,7 +303,8 @@ def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observat
                              f"accepted: {names}")
     if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
         raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
-                         f"(e.g. 'barrier') or a blf_gym.blocks.ResidualFilter, got {residual_filter!r}")
+                         f"(the proposed law's 'barrier' or 'cbf') or a blf_gym.blocks.ResidualFilter, got "
+                         f"{residual_filter!r}")
 
 
 class EnvCore:
@@ -466,7 +467,7 @@ class EnvCore:
             inner, plain = self.controller, False
         if residual_filter is not None and not inner.filters:
             raise ValueError(f"{o} residual_filter={residual_filter!r}: the {inner.name!r} law ships no residual "
-                             "filter (the proposed law has 'barrier')")
+                             "filter (the proposed law has 'barrier' and 'cbf')")
         try:
             self.loop = ClosedLoop([self.base] * self.num_envs, inner, self.observer, threads=threads,
                                    residual_filter=residual_filter, plain=plain)

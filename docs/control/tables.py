@@ -1,0 +1,79 @@
+"""The control side's tables, written from blf-eval's results files (never typed by hand).
+
+    python docs/control/tables.py            # rewrites docs/control/protocol.md and filters.md
+
+* ``protocol.md``: every controller on the protocol (the two presets, the training suite's 20
+  held-out episodes, the stress suite's 50), from ``docs/protocol_control/results.json``, written by
+  ``blf-eval --controllers bc lesobc proposed ppc funnel --agents --out docs/protocol_control``.
+* ``filters.md``: the shipped plain agents with no filter, the barrier filter and the CBF filter,
+  from ``docs/filters_plain/<filter>/results.json``, written by ``blf-eval --agents
+  agents/pretrained/ppo_plain agents/pretrained/ppo_plain_searched agents/pretrained/ppo_lagrangian
+  --residual-filter <filter> --jobs 1 --out docs/filters_plain/<filter>`` for none, barrier and cbf.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+DOCS = Path(__file__).resolve().parent.parent
+GROUPS = {"paper-0.1hz": "0.1 Hz", "paper-0.5hz": "0.5 Hz", "randomized": "training suite", "stress": "stress"}
+
+
+def _records(path: Path) -> tuple[list[dict], str]:
+    data = json.loads(path.read_text())
+    return data["records"], data["provenance"].get("command", "?")
+
+
+def _row(r: dict, name: str | None = None) -> str:
+    rm = " | ".join(f"{v:.4g}" for v in r["rmse_deg"])
+    score = "-" if r.get("score_vs_law") is None else f"{r['score_vs_law']:.3f}"
+    cert = "-" if r.get("certificate_broken") is None else f"{r['certificate_broken']:.2f}"
+    div = " (diverged)" if r.get("diverged") else ""
+    return (f"| {name or r['policy']} | {GROUPS.get(r['scenario'], r['scenario'])} ({r['episodes']}) | {rm} | {score} | "
+            f"{sum(r['violations']):,} | {r['failure_rate']:.2f}{div} | {cert} | {r['wall_s'] / r['episodes']:.2f} |")
+
+
+HEAD = ("| policy | group (episodes) | RMSE j1 (deg) | j2 | j3 | score_vs_law | violating samples | failure rate | "
+        "certificate_broken | wall s / episode |\n|---|---|---|---|---|---|---|---|---|---|")
+
+
+def protocol_table() -> str:
+    recs, cmd = _records(DOCS / "protocol_control" / "results.json")
+    order = {g: i for i, g in enumerate(GROUPS)}
+    recs = sorted(recs, key=lambda r: (order.get(r["scenario"], 9), r["policy"]))
+    return (f"Written by `python docs/control/tables.py` from `docs/protocol_control/results.json` (`{cmd}`). "
+            "Wall time per episode: the group's wall time over its episodes, two worker processes on this "
+            "2-core machine, episodes batched.\n\n" + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
+
+
+def filters_table() -> str:
+    lines = []
+    cmds = []
+    for filt in ("none", "barrier", "cbf"):
+        path = DOCS / "filters_plain" / filt / "results.json"
+        if not path.is_file():
+            continue
+        recs, cmd = _records(path)
+        cmds.append(f"`{cmd}`")
+        for r in recs:
+            if r["kind"] == "baseline":
+                continue
+            base = r["policy"].split("+")[0].removesuffix("-filter")
+            lines.append((base, list(GROUPS).index(r["scenario"]) if r["scenario"] in GROUPS else 9, filt,
+                          _row(r, f"{base}, filter {filt}")))
+    lines.sort()
+    return ("Written by `python docs/control/tables.py` from `docs/filters_plain/*/results.json` ("
+            + "; ".join(cmds) + ").\n\n" + HEAD + "\n" + "\n".join(row for *_, row in lines) + "\n")
+
+
+def main() -> None:
+    out = DOCS / "control"
+    (out / "protocol.md").write_text(protocol_table())
+    if (DOCS / "filters_plain").is_dir():
+        (out / "filters.md").write_text(filters_table())
+    print(f"wrote {out / 'protocol.md'}" + (f" and {out / 'filters.md'}" if (DOCS / "filters_plain").is_dir() else ""))
+
+
+if __name__ == "__main__":
+    main()
