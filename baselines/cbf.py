@@ -43,12 +43,14 @@ Counted cases:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from numba import njit
 
 from blf_gym.blocks import ResidualFilter, coriolis_times, gravity, mass_solve, mass_times
+
+from .params import params_from
 
 __all__ = ["CBFFilterParams", "cbf_filter", "cbf_apply", "CBF_OUTPUTS"]
 
@@ -172,8 +174,5 @@ def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot
 
 def cbf_filter(**kwargs: Any) -> ResidualFilter:
     """The CBF-QP filter; keyword arguments override :class:`CBFFilterParams`."""
-    valid = {f.name for f in fields(CBFFilterParams)}
-    unknown = set(kwargs) - valid
-    if unknown:
-        raise ValueError(f"unknown CBF filter parameter(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return ResidualFilter("cbf", cbf_apply, CBFFilterParams(**kwargs), outputs=dict(CBF_OUTPUTS))
+    params = params_from(CBFFilterParams, kwargs, "CBF filter parameter")
+    return ResidualFilter("cbf", cbf_apply, params, outputs=dict(CBF_OUTPUTS))

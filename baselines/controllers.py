@@ -8,7 +8,7 @@ groups ``blf_gym.controllers`` and ``blf_gym.observers``; keyword arguments over
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -20,6 +20,7 @@ from .cbf import cbf_filter
 from .filters import barrier_filter
 from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
+from .params import params_from
 
 __all__ = ["ControllerGains", "ObserverGains", "controller_gains", "bc", "lesobc", "proposed", "leso"]
 
@@ -70,11 +71,7 @@ class ObserverGains:
 
 def controller_gains(kwargs: dict[str, Any]) -> ControllerGains:
     """:class:`ControllerGains` from keyword overrides, refusing unknown names by name."""
-    valid = {f.name for f in fields(ControllerGains)}
-    unknown = set(kwargs) - valid
-    if unknown:
-        raise ValueError(f"unknown controller gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return ControllerGains(**kwargs)
+    return params_from(ControllerGains, kwargs, "controller gain")
 
 
 _LESO_STATES = {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n"}
@@ -102,8 +99,4 @@ def proposed(**kwargs: Any) -> Controller:
 
 def leso(**kwargs: Any) -> Observer:
     """The linear extended state observer, x_hat(0) = [q(0), 0, 0]."""
-    valid = {f.name for f in fields(ObserverGains)}
-    unknown = set(kwargs) - valid
-    if unknown:
-        raise ValueError(f"unknown observer gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return Observer("leso", leso_rhs, _LESO_STATES, ObserverGains(**kwargs))
+    return Observer("leso", leso_rhs, _LESO_STATES, params_from(ObserverGains, kwargs, "observer gain"))

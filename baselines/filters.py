@@ -27,12 +27,14 @@ r_f reads only the law's own signals at the measured angles.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from numba import njit
 
 from blf_gym.blocks import ResidualFilter
+
+from .params import params_from
 
 __all__ = ["BarrierFilterParams", "barrier_filter", "barrier_apply", "FILTER_OUTPUTS"]
 
@@ -138,8 +140,5 @@ def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1
 
 def barrier_filter(**kwargs: Any) -> ResidualFilter:
     """The barrier filter of the proposed law; keyword arguments override :class:`BarrierFilterParams`."""
-    valid = {f.name for f in fields(BarrierFilterParams)}
-    unknown = set(kwargs) - valid
-    if unknown:
-        raise ValueError(f"unknown barrier filter parameter(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return ResidualFilter("barrier", barrier_apply, BarrierFilterParams(**kwargs), outputs=dict(FILTER_OUTPUTS))
+    params = params_from(BarrierFilterParams, kwargs, "barrier filter parameter")
+    return ResidualFilter("barrier", barrier_apply, params, outputs=dict(FILTER_OUTPUTS))

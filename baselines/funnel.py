@@ -36,13 +36,15 @@ It publishes e0 and e1 (each per joint, dimensionless).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from typing import Any
 
 from numba import njit
 
 from blf_gym.blocks import Controller, coriolis_times
 from blf_gym.params import ArmParams
+
+from .params import params_from
 
 __all__ = ["FunnelGains", "funnel", "funnel_output"]
 
@@ -112,8 +114,5 @@ def funnel_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_b, k_e, k_u, funne
 
 def funnel(**kwargs: Any) -> Controller:
     """Funnel control on the LESO's velocity estimate; keyword arguments override :class:`FunnelGains`."""
-    valid = {f.name for f in fields(FunnelGains)}
-    unknown = set(kwargs) - valid
-    if unknown:
-        raise ValueError(f"unknown funnel gain(s) {sorted(unknown)}; valid: {sorted(valid)}")
-    return Controller("funnel", funnel_output, FunnelGains(**kwargs), outputs={"u_law": "n", "e0": "n", "e1": "n"})
+    params = params_from(FunnelGains, kwargs, "funnel gain")
+    return Controller("funnel", funnel_output, params, outputs={"u_law": "n", "e0": "n", "e1": "n"})
