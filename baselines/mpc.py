@@ -1,5 +1,5 @@
-"""Nonlinear model-predictive control with CasADi (work in progress: the optimal control problem and
-its prediction model; the policy wrapper, the reference preview and the protocol rows follow).
+"""Nonlinear model-predictive control with CasADi, as a policy of the plain env (docs/model.md
+section 15).
 
 The controller's model is the nominal arm (paper Table 1) derived here symbolically from its
 Lagrangian, independently of :mod:`blf_gym.dynamics` (``tests/test_mpc.py`` checks the two against
@@ -8,30 +8,63 @@ each other): point masses m_j at the links' far ends, so the kinetic energy is
 
     M(q) = sum_j m_j J_j^T J_j,    c(q, qd) = d/dt(M qd)|_qdd=0 - 1/2 d(qd^T M qd)/dq,    G = dV/dq.
 
-The prediction adds the observer's disturbance estimate x3_hat, held over the horizon:
-qdd = M^-1 (u - c - G) + x3_hat. It is discretised with one RK4 step per sample period.
+The model adds an optional joint friction F(qd) = b qd + c tanh(psi qd) (none by default) and the
+observer's disturbance estimate, held over the horizon: qdd = M^-1 (u - c - G - F(qd)) + d, with
+d = x3_hat + M^-1 F(x2_hat), since x3_hat holds the friction at the current velocity already. Each
+interval is ``substeps`` RK4 steps.
 
-The problem (multiple shooting, N intervals of ``sample_period``):
+**Status: work in progress, not yet a protocol row.** On the nominal plant it tracks better than BC
+and keeps active constraints (``tests/test_mpc.py``). On the paper's 0.5 Hz preset it loses the
+arm at about 2.9 s; without the plant's friction it does not, so the cause is the viscous friction
+on the light third link (b M^-1 is a mode of 400-550 1/s) held in x3_hat while the plan moves the
+velocity. The same model with the nominal friction and four RK4 steps per interval diverged at
+once in a first try; that is where the work continues.
 
-    min  sum_k |q_k - q_d,k|^2_Q + |qd_k - qd_d,k|^2_Qd + r |u_k|^2 + rho sum_k 1^T s_k
-    s.t. x_{k+1} = RK4(x_k, u_k),   |u_k| <= u_max,
-         -k_b,k + s_k >= -(q_k - q_d,k),  q_k - q_d,k <= k_a,k + s_k,  s_k >= 0
+The problem (multiple shooting, N intervals of ``sample_period``, x_0 the measured angle and the
+observer's velocity):
+
+    min  sum_{k=1..N} |q_k - q_d,k|^2_Q + |qd_k - qd_d,k|^2_Qd + sum_{k<N} r |u_k|^2 + rho 1^T s_k
+    s.t. x_{k+1} = RK4(x_k, u_k),   |u_k| <= u_max,   s_k >= 0,
+         -(1 - beta) k_b,k+1 - s_k <= q_k+1 - q_d,k+1 <= (1 - beta) k_a,k+1 + s_k
+
+with beta the ``backoff``.
 
 The output constraints are soft with an exact (L1) penalty, so the problem is always feasible;
-every violation is still counted by the benchmark.
+every violation is still counted by the benchmark. IPOPT solves it, warm-started from the previous
+solution (primal and dual) shifted by one interval; the problem's functions are compiled to C once
+and kept in the cache (``BLF_GYM_CACHE_DIR``, by default ``~/.cache/blf-gym``), so later processes
+load them in a fraction of a second.
+
+A solve that IPOPT does not report as converged is a **failure**: the policy then applies the next
+torque of its last converged plan while that plan lasts, and otherwise a computed-torque law on the
+same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, field
+import multiprocessing
+import os
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from blf_gym.params import ArmParams
+from blf_gym.observation import (
+    PREVIEW_EXTRAS,
+    PREVIEW_POINTS,
+    PREVIEW_STEP,
+    SQUASH_DISTURBANCE,
+    SQUASH_REF_ACCELERATION,
+    SQUASH_VELOCITY,
+    observation_index,
+)
+from blf_gym.params import ArmParams, FrictionParams
 
-__all__ = ["NMPCParams", "casadi_dynamics", "NMPC"]
+__all__ = ["NMPCParams", "casadi_dynamics", "NMPC", "NMPCPolicy", "nmpc"]
 
 
 def _casadi():
@@ -47,45 +80,81 @@ class NMPCParams:
     """The NMPC's horizon, weights and solver settings."""
 
     horizon: int = field(default=30, metadata={"unit": "-"})
-    """Intervals in the horizon (>= 1); the horizon covers horizon x sample_period seconds."""
+    """Intervals in the horizon (>= 1); it covers horizon x sample_period s, at most the 0.3 s
+    of the observation's preview."""
     sample_period: float = field(default=0.01, metadata={"unit": "s"})
-    """The period at which the problem is solved and its first torque held (> 0)."""
+    """Period at which the problem is solved and its first torque held; the env's control_period."""
     q_weight: float = field(default=1e4, metadata={"unit": "1/rad^2"})
     """Weight of the squared angle error."""
     qd_weight: float = field(default=10.0, metadata={"unit": "s^2/rad^2"})
     """Weight of the squared velocity error."""
     u_weight: float = field(default=1e-4, metadata={"unit": "1/(N m)^2"})
     """Weight of the squared torque."""
+    du_weight: float = field(default=1e-2, metadata={"unit": "1/(N m)^2"})
+    """Weight of the squared torque change between intervals (the first from the torque applied
+    last): it keeps the loop through the observer's lag from ringing."""
     penalty: float = field(default=1e5, metadata={"unit": "1/rad"})
     """Exact-penalty weight of the output constraints' slack."""
+    backoff: float = field(default=0.02, metadata={"unit": "-"})
+    """Share of the bounds the constraints keep free (in [0, 1)): the constraints hold at the
+    nodes, the benchmark counts every 1 ms sample in between, and the angle is measured."""
     max_iter: int = field(default=50, metadata={"unit": "-"})
-    """Iteration limit of the solver per sample."""
+    """IPOPT's iteration limit per sample; a solve that reaches it is a failure."""
+    fallback_kp: float = field(default=400.0, metadata={"unit": "1/s^2"})
+    """Proportional gain of the computed-torque fallback."""
+    fallback_kd: float = field(default=40.0, metadata={"unit": "1/s"})
+    """Derivative gain of the computed-torque fallback."""
+    substeps: int = field(default=1, metadata={"unit": "-"})
+    """RK4 steps per interval (a model with the viscous friction needs several: on the light
+    third link it is a mode of about 400-550 1/s, beyond RK4's stability at 10 ms)."""
     nominal: ArmParams = field(default_factory=ArmParams)
+    friction: FrictionParams = field(default_factory=lambda: FrictionParams(viscous=0.0, coulomb=0.0))
+    """The model's joint friction, b qd + c tanh(psi qd); none by default (the observer's x3_hat
+    holds it). The observer's x3_hat holds the friction at the current velocity, which the
+    prediction takes out of the held disturbance."""
 
     def __post_init__(self) -> None:
         o = "NMPCParams"
-        for name in ("horizon", "max_iter"):
+        for name in ("horizon", "max_iter", "substeps"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{o}.{name} must be an integer >= 1, got {v!r}")
-        for name in ("sample_period", "q_weight", "qd_weight", "u_weight", "penalty"):
+        for name in ("sample_period", "q_weight", "qd_weight", "u_weight", "du_weight", "penalty", "fallback_kp",
+                     "fallback_kd"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{o}.{name} must be a finite number >= 0, got {v!r}")
             object.__setattr__(self, name, float(v))
         if self.sample_period <= 0:
             raise ValueError(f"{o}.sample_period must be > 0 s, got {self.sample_period!r}")
+        b = self.backoff
+        if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b < 1:
+            raise ValueError(f"{o}.backoff must be a number in [0, 1), got {b!r}")
+        object.__setattr__(self, "backoff", float(b))
+        span = PREVIEW_POINTS * PREVIEW_STEP
+        if self.horizon * self.sample_period > span + 1e-12:
+            raise ValueError(f"{o}: horizon x sample_period = {self.horizon * self.sample_period:g} s must be at "
+                             f"most the observation's preview, {span:g} s")
 
 
-def casadi_dynamics(arm: ArmParams = ArmParams()) -> Any:
+def casadi_dynamics(arm: ArmParams = ArmParams(), friction: FrictionParams | None = None) -> Any:
     """A CasADi Function ``f(x, u, d) -> xdot`` of the nominal arm, x = [q, qd] (2n), u and d (n):
-    qdd = M^-1 (u - c(q, qd) - G(q)) + d (see the module docstring)."""
+    qdd = M^-1 (u - c(q, qd) - G(q) - F(qd)) + d, F the joint friction (none if None; see the
+    module docstring)."""
     ca = _casadi()
     n = arm.n_links
     q = ca.SX.sym("q", n)
     qd = ca.SX.sym("qd", n)
     u = ca.SX.sym("u", n)
     d = ca.SX.sym("d", n)
+    M, c, G = _lagrangian_terms(ca, arm, q, qd)
+    qdd = ca.solve(M, u - c - G - _friction(ca, friction, qd)) + d
+    return ca.Function("f", [ca.vertcat(q, qd), u, d], [ca.vertcat(qd, qdd)], ["x", "u", "d"], ["xdot"])
+
+
+def _lagrangian_terms(ca: Any, arm: ArmParams, q: Any, qd: Any) -> tuple[Any, Any, Any]:
+    """M(q), c(q, qd) and G(q) of the point-mass arm, from its kinetic and potential energy."""
+    n = arm.n_links
     theta = ca.cumsum(q)
     px, py = ca.SX(0), ca.SX(0)
     M = ca.SX.zeros(n, n)
@@ -98,67 +167,124 @@ def casadi_dynamics(arm: ArmParams = ArmParams()) -> Any:
         V = V + arm.masses[j] * arm.gravity * py
     Mqd = M @ qd
     c = ca.jtimes(Mqd, q, qd) - 0.5 * ca.gradient(ca.dot(qd, Mqd), q)
-    G = ca.gradient(V, q)
-    qdd = ca.solve(M, u - c - G) + d
-    return ca.Function("f", [ca.vertcat(q, qd), u, d], [ca.vertcat(qd, qdd)], ["x", "u", "d"], ["xdot"])
+    return M, c, ca.gradient(V, q)
+
+
+def _friction(ca: Any, friction: FrictionParams | None, qd: Any) -> Any:
+    """b qd + c tanh(psi qd) per joint (paper eq. 2), or zero."""
+    if friction is None:
+        return ca.SX.zeros(qd.shape[0])
+    return friction.viscous * qd + friction.coulomb * ca.tanh(friction.tanh_slope * qd)
+
+
+def _cache_dir() -> Path:
+    return Path(os.environ.get("BLF_GYM_CACHE_DIR") or Path.home() / ".cache" / "blf-gym") / "nmpc"
 
 
 class NMPC:
-    """The optimal control problem of the module docstring, solved with IPOPT and warm-started
-    from the previous solution shifted by one interval."""
+    """The optimal control problem of the module docstring, one compiled CasADi Function shared by
+    every arm; each arm's warm start is a value the caller keeps (:meth:`solve`)."""
 
-    def __init__(self, params: NMPCParams = NMPCParams(), u_max: float = 150.0) -> None:
+    def __init__(self, params: NMPCParams = NMPCParams(), u_max: float = 150.0, compiled: bool = True) -> None:
         ca = _casadi()
         self.params = p = params
         n = p.nominal.n_links
         self.n, self.N, self.u_max = n, p.horizon, float(u_max)
-        f = casadi_dynamics(p.nominal)
-        h = p.sample_period
+        if not (math.isfinite(self.u_max) and self.u_max > 0):
+            raise ValueError(f"NMPC.u_max must be a positive number of N m, got {u_max!r}")
+        f = casadi_dynamics(p.nominal, p.friction)
+        h = p.sample_period / p.substeps
         x, u, d = ca.SX.sym("x", 2 * n), ca.SX.sym("u", n), ca.SX.sym("d", n)
-        k1 = f(x, u, d)
-        k2 = f(x + h / 2 * k1, u, d)
-        k3 = f(x + h / 2 * k2, u, d)
-        k4 = f(x + h * k3, u, d)
-        self.step = ca.Function("rk4", [x, u, d], [x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)])
+        xe = x
+        for _ in range(p.substeps):
+            k1 = f(xe, u, d)
+            k2 = f(xe + h / 2 * k1, u, d)
+            k3 = f(xe + h / 2 * k2, u, d)
+            k4 = f(xe + h * k3, u, d)
+            xe = xe + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        self.step = ca.Function("rk4", [x, u, d], [xe])
+        q, qd, acc = ca.SX.sym("q", n), ca.SX.sym("qd", n), ca.SX.sym("a", n)
+        M, c, G = _lagrangian_terms(ca, p.nominal, q, qd)
+        F = _friction(ca, p.friction, qd)
+        # the computed torque that gives acceleration acc on the model
+        self.inverse = ca.Function("inverse", [q, qd, acc], [M @ acc + c + G + F])
+        # the acceleration the model's friction takes at (q, qd): x3_hat holds it already
+        self.friction_acc = ca.Function("friction_acc", [q, qd], [-ca.solve(M, F)])
+        self._nlam = 0
+        self._compiled = compiled
+        self._fn: Any = None
+
+    @property
+    def _solver(self) -> Any:
+        """The solver Function, built or loaded at the first solve (:meth:`_load_or_build`)."""
+        if self._fn is None:
+            self._fn = self._load_or_build(_casadi(), self._compiled)
+        return self._fn
+
+    def _key(self, compiled: bool) -> str:
+        ca = _casadi()
+        src = Path(__file__).read_bytes()
+        text = repr((asdict(self.params), self.u_max, compiled, ca.__version__)).encode()
+        return hashlib.sha256(src + text).hexdigest()[:20]
+
+    def _load_or_build(self, ca: Any, compiled: bool) -> Any:
+        """The solver Function: loaded from the cache when this code, these parameters and this
+        CasADi built it before; otherwise built (with C code generation when ``compiled`` and a C
+        compiler is on the PATH: about 70 s once, then about 3 times faster per solve) and saved."""
+        import shutil
+
+        compiled = compiled and (shutil.which("gcc") or shutil.which("cc")) is not None
+        path = _cache_dir() / f"{self._key(compiled)}.casadi"
+        if path.is_file():
+            try:
+                fn = ca.Function.load(str(path))
+                self._nlam = int(fn.size1_in(10))
+                return fn
+            except Exception:  # noqa: BLE001 (a damaged cache file is rebuilt)
+                pass
+        fn = self._build(ca, compiled)
+        if compiled:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+            fn.save(str(tmp))
+            os.replace(tmp, path)
+        return fn
+
+    def _build(self, ca: Any, compiled: bool) -> Any:
+        p, n, N = self.params, self.n, self.N
         opti = ca.Opti()
-        N = self.N
         X = opti.variable(2 * n, N + 1)
         U = opti.variable(n, N)
         S = opti.variable(n, N)
-        x0, dh = opti.parameter(2 * n), opti.parameter(n)
+        x0, dh, ulast = opti.parameter(2 * n), opti.parameter(n), opti.parameter(n)
         qref, qdref = opti.parameter(n, N + 1), opti.parameter(n, N + 1)
         ka, kb = opti.parameter(1, N + 1), opti.parameter(1, N + 1)
-        cost = 0
         opti.subject_to(X[:, 0] == x0)
-        for k in range(N):
-            opti.subject_to(X[:, k + 1] == self.step(X[:, k], U[:, k], dh))
-            e = X[:n, k + 1] - qref[:, k + 1]
-            ed = X[n:, k + 1] - qdref[:, k + 1]
-            cost += p.q_weight * ca.sumsqr(e) + p.qd_weight * ca.sumsqr(ed) + p.u_weight * ca.sumsqr(U[:, k])
-            cost += p.penalty * ca.sum1(S[:, k])
-            opti.subject_to(e <= ka[0, k + 1] + S[:, k])
-            opti.subject_to(-e <= kb[0, k + 1] + S[:, k])
+        # the horizon's steps as one mapped call: the generated code holds one step and its derivatives
+        opti.subject_to(X[:, 1:] == self.step.map(N)(X[:, :N], U, ca.repmat(dh, 1, N)))
+        E = X[:n, 1:] - qref[:, 1:]
+        Ed = X[n:, 1:] - qdref[:, 1:]
+        dU = U - ca.horzcat(ulast, U[:, : N - 1])
+        opti.minimize(p.q_weight * ca.sumsqr(E) + p.qd_weight * ca.sumsqr(Ed) + p.u_weight * ca.sumsqr(U)
+                      + p.du_weight * ca.sumsqr(dU) + p.penalty * ca.sum1(ca.sum2(S)))
+        keep = 1.0 - p.backoff
+        opti.subject_to(ca.vec(E) <= ca.vec(ca.repmat(keep * ka[:, 1:], n, 1) + S))
+        opti.subject_to(ca.vec(-E) <= ca.vec(ca.repmat(keep * kb[:, 1:], n, 1) + S))
         opti.subject_to(ca.vec(S) >= 0)
         opti.subject_to(opti.bounded(-self.u_max, ca.vec(U), self.u_max))
-        opti.minimize(cost)
-        opti.solver("ipopt", {"expand": True, "print_time": False, **self._jit(), "ipopt.print_level": 0, "ipopt.sb": "yes",
-                              "ipopt.max_iter": p.max_iter, "ipopt.warm_start_init_point": "yes"})
-        self._opti, self._X, self._U, self._S = opti, X, U, S
-        self._par = (x0, dh, qref, qdref, ka, kb)
+        jit = ({"jit": True, "compiler": "shell", "jit_serialize": "embed",
+                "jit_options": {"flags": ["-O1"], "verbose": False}} if compiled else {})
+        # warm start from the shifted solution, multipliers included, with a small barrier parameter
+        opti.solver("ipopt", {"print_time": False, **jit, "ipopt.print_level": 0, "ipopt.sb": "yes",
+                              "ipopt.max_iter": p.max_iter, "ipopt.warm_start_init_point": "yes",
+                              "ipopt.mu_init": 1e-4, "ipopt.warm_start_bound_push": 1e-6,
+                              "ipopt.warm_start_mult_bound_push": 1e-6})
+        lam = opti.lam_g
+        self._nlam = int(lam.shape[0])
         # one CasADi Function around the solver: Opti's own solve() re-checks the problem each call
-        self._solver = opti.to_function("nmpc", [x0, dh, qref, qdref, ka, kb, X, U, S], [X, U, S],
-                                        ["x0", "d", "qref", "qdref", "ka", "kb", "X0", "U0", "S0"], ["X", "U", "S"])
-        self._guess: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-
-    @staticmethod
-    def _jit() -> dict[str, Any]:
-        """Compile the problem's functions to C when a C compiler is on the PATH (about ten times
-        faster per iteration); otherwise CasADi's virtual machine evaluates them."""
-        import shutil
-
-        if shutil.which("gcc") is None and shutil.which("cc") is None:
-            return {}
-        return {"jit": True, "compiler": "shell", "jit_options": {"flags": ["-O1"], "verbose": False}}
+        return opti.to_function("nmpc", [x0, dh, qref, qdref, ka, kb, ulast, X, U, S, lam], [X, U, S, lam],
+                                ["x0", "d", "qref", "qdref", "ka", "kb", "u_last", "X0", "U0", "S0", "L0"],
+                                ["X", "U", "S", "L"])
 
     def predict_states(self, x0: np.ndarray, torques: np.ndarray, d: np.ndarray | None = None) -> np.ndarray:
         """The model's states after each of ``torques`` (k, n), each held one sample period, from x0."""
@@ -169,27 +295,273 @@ class NMPC:
             out.append(x)
         return np.array(out)
 
-    def solve(self, x0, d_hat, q_ref, qd_ref, k_a, k_b) -> tuple[np.ndarray, dict[str, Any]]:
-        """The first torque of the optimal plan and the solver's facts (``success``, ``iterations``,
-        ``slack``: the largest constraint slack in rad, ``status``). ``q_ref``, ``qd_ref`` (n, N+1)
-        and ``k_a``, ``k_b`` (N+1) cover the horizon's nodes, the current one first."""
-        if self._guess is not None:
-            Xg, Ug, Sg = self._guess
+    def solve(self, x0, d_hat, q_ref, qd_ref, k_a, k_b, u_last=None,
+              warm: Any = None) -> tuple[np.ndarray, dict[str, Any], Any]:
+        """``(plan, facts, warm)``: the optimal torques (n, N), the solver's facts (``success``,
+        ``iterations``, ``slack``: the largest slack in rad, ``status``) and the warm start of the
+        next sample (give it back as ``warm``; None starts cold). ``q_ref``, ``qd_ref`` (n, N+1)
+        and ``k_a``, ``k_b`` (N+1) cover the horizon's nodes, the current one first; ``u_last`` is
+        the torque applied over the last sample (None: zero)."""
+        u_last = np.zeros(self.n) if u_last is None else u_last
+        if warm is not None:
+            Xg, Ug, Sg, Lg = warm
             X0 = np.hstack([Xg[:, 1:], Xg[:, -1:]])
             U0 = np.hstack([Ug[:, 1:], Ug[:, -1:]])
             S0 = np.hstack([Sg[:, 1:], Sg[:, -1:]])
+            L0 = Lg
         else:
             X0 = np.repeat(np.reshape(x0, (-1, 1)), self.N + 1, axis=1)
             U0 = np.zeros((self.n, self.N))
             S0 = np.zeros((self.n, self.N))
-        X, U, S = self._solver(x0, d_hat, q_ref, qd_ref, np.reshape(k_a, (1, -1)), np.reshape(k_b, (1, -1)), X0, U0, S0)
+            L0 = np.zeros(self._nlam)
+        X, U, S, L = self._solver(x0, d_hat, q_ref, qd_ref, np.reshape(k_a, (1, -1)), np.reshape(k_b, (1, -1)),
+                                  u_last, X0, U0, S0, L0)
         stats = self._solver.stats()
-        X, U, S = np.asarray(X), np.asarray(U), np.asarray(S)
-        ok = bool(stats.get("success", False)) and np.all(np.isfinite(U))
-        self._guess = (X, U, S)
-        return U[:, 0].copy(), {"success": ok, "iterations": int(stats.get("iter_count", -1)),
-                                "slack": float(np.max(S)), "status": str(stats.get("return_status", ""))}
+        X, U, S, L = np.asarray(X), np.asarray(U), np.asarray(S), np.asarray(L)
+        ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(U)))
+        facts = {"success": ok, "iterations": int(stats.get("iter_count", -1)),
+                 "slack": float(np.max(S)) if S.size else 0.0, "status": str(stats.get("return_status", ""))}
+        return U, facts, ((X, U, S, L) if ok else None)
 
-    def reset(self) -> None:
-        """Forget the warm start (a new episode)."""
-        self._guess = None
+
+class _Arm:
+    """One arm's memory between samples: the warm start, the last converged plan and its age."""
+
+    __slots__ = ("warm", "plan", "age")
+
+    def __init__(self) -> None:
+        self.warm: Any = None
+        self.plan: np.ndarray | None = None
+        self.age = 0
+
+
+def _act(nmpc: NMPC, arm: _Arm, x0, d, qref, qdref, ka, kb, u_last, qdd_now) -> tuple[np.ndarray, float, bool, str]:
+    """One sample of one arm: (torque, solve time in s, whether the fallback acted, IPOPT's status)."""
+    t0 = time.perf_counter()
+    plan, facts, warm = nmpc.solve(x0, d, qref, qdref, ka, kb, u_last, arm.warm)
+    wall = time.perf_counter() - t0
+    if facts["success"]:
+        arm.warm, arm.plan, arm.age = warm, plan, 0
+        return plan[:, 0].copy(), wall, False, facts["status"]
+    arm.age += 1
+    if arm.plan is not None and arm.age < arm.plan.shape[1]:
+        u = arm.plan[:, arm.age].copy()  # the last converged plan, one more interval on
+    else:
+        n = nmpc.n
+        p = nmpc.params
+        q, qd = x0[:n], x0[n:]
+        a = qdd_now - d + p.fallback_kp * (qref[:, 0] - q) + p.fallback_kd * (qdref[:, 0] - qd)
+        u = np.clip(np.asarray(nmpc.inverse(q, qd, a)).ravel(), -nmpc.u_max, nmpc.u_max)
+        arm.warm = None
+    return u, wall, True, facts["status"]
+
+
+def _worker(conn: Any, params: NMPCParams, u_max: float, compiled: bool) -> None:
+    """A solving process: owns some arms, answers each batch of their samples."""
+    nmpc = NMPC(params, u_max, compiled)
+    arms: dict[int, _Arm] = {}
+    conn.send("ready")
+    while True:
+        msg = conn.recv()
+        if msg is None:
+            return
+        out = []
+        for i, start, args in msg:
+            if start or i not in arms:
+                arms[i] = _Arm()
+            out.append(_act(nmpc, arms[i], *args))
+        conn.send(out)
+
+
+class NMPCPolicy:
+    """The NMPC as an SB3-style policy for the plain env: ``predict(obs, state, episode_start,
+    deterministic)`` gives actions in [-1, 1] (torque over max_torque), as a trained agent's.
+
+    It reads the measured angle y, the env observer's x2_hat and x3_hat, and the preview of the
+    reference and the bounds (the observation extras :data:`blf_gym.observation.PREVIEW_EXTRAS`), so
+    it acts in ``gym.make("PlanarBLF-v0", **policy.env_kwargs)``. Each row of a batch is an arm with
+    its own warm start; an observation at t = 0 (or ``episode_start``) starts that arm afresh.
+
+    ``workers``: processes that solve the arms of a batch in parallel (each loads the compiled
+    solver from the cache); None uses two when a batch has several arms and two cores are free to
+    this process, else 0 (solve in this process). ``compiled`` False skips the C code generation
+    (no compiler run, about three times slower per solve)."""
+
+    whole_batch = True
+    """blf-eval calls it once per step with every arm (it keeps per-arm state)."""
+
+    def __init__(self, params: NMPCParams | None = None, max_torque: float = 150.0, workers: int | None = None,
+                 env: Any = None, compiled: bool = True) -> None:
+        self.params = params or NMPCParams()
+        self.max_torque = float(max_torque)
+        if workers is not None and (isinstance(workers, bool) or not isinstance(workers, int) or workers < 0):
+            raise ValueError(f"NMPCPolicy.workers must be None or an integer >= 0, got {workers!r}")
+        self.workers = workers
+        self.nmpc = NMPC(self.params, self.max_torque, compiled)
+        self.compiled = compiled
+        self.name = "nmpc"
+        self.env_kwargs: dict[str, Any] = {"controller": "none", "control_period": self.params.sample_period,
+                                           "observation_extras": list(PREVIEW_EXTRAS)}
+        self._index = observation_index(self.nmpc.n, False, PREVIEW_EXTRAS)
+        self._arms: dict[int, _Arm] = {}
+        self._pool: list[Any] = []
+        self._times: list[float] = []
+        self._fallbacks = 0
+        self._statuses: dict[str, int] = {}
+        if env is not None:
+            self.check_env(env)
+
+    def check_env(self, env: Any) -> None:
+        """Refuse an env this policy cannot drive: residual mode, another control period or torque
+        limit, or an observation without the preview; its layout is read from the env."""
+        core = getattr(getattr(env, "unwrapped", env), "core", None)
+        if core is None:
+            raise ValueError(f"NMPCPolicy.check_env: {type(env).__name__} is not a PlanarBLF env")
+        if core.residual:
+            raise ValueError("NMPCPolicy drives the plain env (its action is the whole torque); make the env with "
+                             "gym.make('PlanarBLF-v0', **policy.env_kwargs)")
+        if not np.isclose(core.control_period, self.params.sample_period, rtol=1e-9, atol=0.0):
+            raise ValueError(f"NMPCPolicy holds each torque for sample_period = {self.params.sample_period:g} s, but "
+                             f"the env's control_period is {core.control_period:g} s")
+        if not np.isclose(core.sim.max_torque, self.max_torque):
+            raise ValueError(f"NMPCPolicy scales its torque by max_torque = {self.max_torque:g} N m, but the env's "
+                             f"is {core.sim.max_torque:g} N m")
+        missing = [g for g in PREVIEW_EXTRAS if g not in core.observation_extras]
+        if missing:
+            raise ValueError(f"NMPCPolicy reads the preview {missing} of the observation; make the env with "
+                             "observation_extras including blf_gym.observation.PREVIEW_EXTRAS (policy.env_kwargs)")
+        self._index = observation_index(core.n, core.privileged, core.observation_extras)
+
+    def _inputs(self, o: np.ndarray) -> tuple:
+        """The problem's data from one observation row (float64)."""
+        ix, n, p = self._index, self.nmpc.n, self.params
+        o = o.astype(np.float64)
+
+        def unsquash(v: np.ndarray, c: float) -> np.ndarray:
+            return c * np.arctanh(np.clip(v / c, -1 + 1e-12, 1 - 1e-12))
+
+        x0 = np.concatenate([o[ix["y"]], unsquash(o[ix["x2_hat"]], SQUASH_VELOCITY)])
+        # the observer's lumped disturbance holds the friction at the current velocity; the model
+        # has its own, so the held rest is x3_hat less that part
+        d = unsquash(o[ix["x3_hat"]], SQUASH_DISTURBANCE)
+        d = d - np.asarray(self.nmpc.friction_acc(x0[:n], x0[n:])).ravel()
+        # the preview's times 0, PREVIEW_STEP, ... and the horizon's nodes 0, h, ..., N h
+        tp = np.arange(PREVIEW_POINTS + 1) * PREVIEW_STEP
+        tk = np.arange(p.horizon + 1) * p.sample_period
+        q_all = np.vstack([o[ix["q_d"]], o[ix["q_d_preview"]].reshape(PREVIEW_POINTS, n)])
+        qd_all = unsquash(np.vstack([o[ix["qd_d"]], o[ix["qd_d_preview"]].reshape(PREVIEW_POINTS, n)]),
+                          SQUASH_VELOCITY)
+        ka_all = np.concatenate([o[ix["k_a"]], o[ix["k_a_preview"]]])
+        kb_all = np.concatenate([o[ix["k_b"]], o[ix["k_b_preview"]]])
+
+        def at(v: np.ndarray) -> np.ndarray:
+            return v if len(tk) == len(tp) and p.sample_period == PREVIEW_STEP else np.interp(tk, tp, v)
+
+        qref = np.array([at(q_all[:, j]) for j in range(n)])
+        qdref = np.array([at(qd_all[:, j]) for j in range(n)])
+        qdd_now = unsquash(o[ix["qdd_d"]], SQUASH_REF_ACCELERATION)
+        u_last = o[ix["u"]] * self.max_torque
+        return x0, d, qref, qdref, at(ka_all), at(kb_all), u_last, qdd_now
+
+    def _start_pool(self, count: int) -> None:
+        ctx = multiprocessing.get_context("spawn")
+        for _ in range(count):
+            a, b = ctx.Pipe()
+            proc = ctx.Process(target=_worker, args=(b, self.params, self.max_torque, self.compiled), daemon=True)
+            proc.start()
+            self._pool.append((proc, a))
+        for _, conn in self._pool:
+            if conn.recv() != "ready":  # pragma: no cover
+                raise RuntimeError("an NMPC worker did not start")
+
+    def _pool_size(self, rows: int) -> int:
+        if self.workers is not None:
+            return self.workers
+        if rows < 2 or multiprocessing.current_process().daemon:
+            return 0
+        try:
+            free = len(os.sched_getaffinity(0))
+        except AttributeError:  # pragma: no cover
+            free = os.cpu_count() or 1
+        return 2 if free >= 2 else 0
+
+    def predict(self, observation: np.ndarray, state: Any = None, episode_start: np.ndarray | None = None,
+                deterministic: bool = True) -> tuple[np.ndarray, Any]:
+        """SB3's PolicyPredictor interface: actions in [-1, 1] (torque / max_torque)."""
+        obs = np.asarray(observation)
+        single = obs.ndim == 1
+        batch = obs[None] if single else obs
+        width = max(s.stop for s in self._index.values())
+        if batch.ndim != 2 or batch.shape[1] != width:
+            raise ValueError(f"NMPCPolicy expects observations of {width} entries (the plain env with "
+                             f"observation_extras={list(PREVIEW_EXTRAS)}), got shape {obs.shape}")
+        if not np.all(np.isfinite(batch)):
+            raise ValueError("NMPCPolicy: the observation holds NaN or inf")
+        rows = batch.shape[0]
+        starts = (np.zeros(rows, dtype=bool) if episode_start is None
+                  else np.asarray(episode_start, dtype=bool).reshape(-1))
+        starts = starts | (batch[:, self._index["time"].start] == 0.0)
+        args = [self._inputs(batch[i]) for i in range(rows)]
+        want = self._pool_size(rows)
+        if want and not self._pool:
+            self._start_pool(want)
+        if self._pool:
+            parts: list[list[tuple[int, bool, tuple]]] = [[] for _ in self._pool]
+            for i in range(rows):
+                parts[i % len(self._pool)].append((i, bool(starts[i]), args[i]))
+            for (_, conn), part in zip(self._pool, parts):
+                conn.send(part)
+            results: list[Any] = [None] * rows
+            for (_, conn), part in zip(self._pool, parts):
+                for (i, _, _), r in zip(part, conn.recv()):
+                    results[i] = r
+        else:
+            results = []
+            for i in range(rows):
+                if starts[i] or i not in self._arms:
+                    self._arms[i] = _Arm()
+                results.append(_act(self.nmpc, self._arms[i], *args[i]))
+        u = np.empty((rows, self.nmpc.n))
+        for i, (ui, wall, fell_back, status) in enumerate(results):
+            u[i] = ui
+            self._times.append(wall)
+            self._fallbacks += int(fell_back)
+            self._statuses[status] = self._statuses.get(status, 0) + 1
+        actions = np.clip(u / self.max_torque, -1.0, 1.0).astype(np.float32)
+        return (actions[0] if single else actions), state
+
+    def report(self) -> dict[str, Any]:
+        """The solves so far: count, fallbacks (failed solves), IPOPT's statuses, and the solve time
+        per sample in ms (median, 99th percentile, largest)."""
+        t = np.array(self._times) * 1e3
+        return {"solves": int(t.size), "fallbacks": self._fallbacks, "statuses": dict(self._statuses),
+                "solve_ms_median": float(np.median(t)) if t.size else None,
+                "solve_ms_p99": float(np.percentile(t, 99)) if t.size else None,
+                "solve_ms_max": float(t.max()) if t.size else None,
+                "horizon_s": self.params.horizon * self.params.sample_period,
+                "sample_period_s": self.params.sample_period}
+
+    def close(self) -> None:
+        """End the solving processes."""
+        for proc, conn in self._pool:
+            try:
+                conn.send(None)
+            except (BrokenPipeError, OSError):
+                pass
+            proc.join(timeout=5)
+        self._pool = []
+
+    def __del__(self) -> None:  # pragma: no cover - best effort at interpreter exit
+        try:
+            self.close()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def nmpc(**kwargs: Any) -> NMPCPolicy:
+    """The ``nmpc`` entry point of ``blf_gym.policies``: :class:`NMPCPolicy` with NMPCParams fields,
+    ``max_torque``, ``workers`` and ``compiled`` as keywords (unknown ones refused by name)."""
+    from .params import params_from
+
+    top = {k: kwargs.pop(k) for k in ("max_torque", "workers", "compiled") if k in kwargs}
+    return NMPCPolicy(params_from(NMPCParams, kwargs, "NMPC parameter"), **top)

@@ -498,10 +498,10 @@ class EnvCore:
                          f"(its outputs: {list(conn.out_offsets)})")
                 what = f"{name!r}" if name == e.group else f"{e.source!r} (entry {e.group!r})"
                 raise ValueError(f"{self.owner} the observation reads {what}, which {block}") from None
-            plan.append((frm, col, m, at))
+            plan.append((frm, col, m, at, e.points))
             scale.append(e.scale)
             at += m
-        self._plan = np.array(plan, dtype=np.int64).reshape(-1, 4)
+        self._plan = np.array(plan, dtype=np.int64).reshape(-1, 5)
         self._plan_scale = np.array(scale, dtype=np.float64)
         layout = observation_layout(n, self.privileged, self.observation_extras)
         self.obs_dim = len(layout)

@@ -21,7 +21,8 @@ from .reference import reference_into
 from .status import LAST_COLUMNS
 
 __all__ = ["Entry", "OBSERVATION", "SOURCES", "optional_observations", "observation_index", "observation_layout",
-           "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE", "observe_batch"]
+           "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE", "PREVIEW_STEP", "PREVIEW_POINTS",
+           "PREVIEW_EXTRAS", "observe_batch"]
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
 SQUASH_VELOCITY = 100.0
@@ -34,6 +35,10 @@ ANGLE_CLIP = 4.0 * math.pi
 """Box of the angle entries (y, q_d), rad."""
 ERROR_CLIP = 10.0
 """Box of the normalized error entries."""
+PREVIEW_STEP = 0.01
+"""Spacing of the preview entries' future times, s (they give a signal at t + k PREVIEW_STEP)."""
+PREVIEW_POINTS = 30
+"""Future times in a preview entry (k = 1 .. PREVIEW_POINTS: 0.3 s ahead)."""
 
 SOURCES = {
     "measured": "y (the measured angles, true angles plus the episode's noise) or e1_normalized "
@@ -68,6 +73,10 @@ class Entry(NamedTuple):
     scale: float = 0.0
     """> 0 squashes the value as scale * tanh(value / scale); < 0 divides it by the arm's
     max_torque; 0 passes it as it is. Then it is clipped to [low, high]."""
+    points: int = 0
+    """0: the signal now. k > 0: a preview, the signal at t + i PREVIEW_STEP for i = 1 .. k, time
+    after time (k times the entries; "{s}" in the label is the offset in ms). Only reference and
+    bounds signals, which are known functions of time, can be previewed."""
 
 
 OBSERVATION: tuple[Entry, ...] = (
@@ -99,10 +108,20 @@ OBSERVATION: tuple[Entry, ...] = (
           "last:u_law", -1.0),
     Entry("z2_hat", None, f"z2_hat_{{j}} = x2_hat - alpha1 (the law's, squashed {SQUASH_VELOCITY:g})", "rad/s",
           -SQUASH_VELOCITY, SQUASH_VELOCITY, "optional", "controller:z2_hat", SQUASH_VELOCITY),
+    # the reference and the bounds ahead (what a predictive controller needs; offered to learners too)
+    Entry("q_d_preview", None, "q_d_{j}(t+{s} ms)", "rad", -ANGLE_CLIP, ANGLE_CLIP, "optional", "reference:q_d",
+          0.0, PREVIEW_POINTS),
+    Entry("qd_d_preview", None, f"qd_d_{{j}}(t+{{s}} ms) (squashed {SQUASH_VELOCITY:g})", "rad/s", -SQUASH_VELOCITY,
+          SQUASH_VELOCITY, "optional", "reference:qd_d", SQUASH_VELOCITY, PREVIEW_POINTS),
+    Entry("k_a_preview", 1, "k_a(t+{s} ms)", "rad", 0.0, 10.0, "optional", "bounds:k_a", 0.0, PREVIEW_POINTS),
+    Entry("k_b_preview", 1, "k_b(t+{s} ms)", "rad", 0.0, 10.0, "optional", "bounds:k_b", 0.0, PREVIEW_POINTS),
 )
 """The observation vector, declared once, in order. Privileged groups come after the base ones and
 exist only with ``privileged=True``; optional groups come last, in the order the env's
 ``observation_extras`` names them."""
+
+PREVIEW_EXTRAS = tuple(e.group for e in OBSERVATION if e.points)
+"""The optional preview groups: the reference and the bounds over the next 0.3 s."""
 
 
 def optional_observations() -> list[str]:
@@ -122,7 +141,7 @@ def observation_index(n: int = 3, privileged: bool = True, extras: Sequence[str]
     groups unless ``privileged=False``, and the optional ones named in ``extras``)."""
     out, o = {}, 0
     for e in groups(privileged, extras):
-        m = n if e.count is None else e.count
+        m = (n if e.count is None else e.count) * max(e.points, 1)
         out[e.group] = slice(o, o + m)
         o += m
     return out
@@ -132,11 +151,14 @@ def observation_layout(n: int = 3, privileged: bool = False, extras: Sequence[st
     """(name, unit, low, high) of every observation entry, in order."""
     rows: list[tuple[str, str, float, float]] = []
     for e in groups(privileged, extras):
-        if e.count is None:
-            rows += [(e.name.format(j=j + 1), e.unit, e.low, e.high) for j in range(n)]
-        else:
-            names = e.name.split("|")
-            rows += [(names[i] if len(names) == e.count else e.name, e.unit, e.low, e.high) for i in range(e.count)]
+        for k in range(1, e.points + 1) if e.points else [0]:
+            s = f"{k * PREVIEW_STEP * 1e3:g}"
+            if e.count is None:
+                rows += [(e.name.format(j=j + 1, s=s), e.unit, e.low, e.high) for j in range(n)]
+            else:
+                names = e.name.split("|")
+                rows += [((names[i] if len(names) == e.count else e.name).format(s=s), e.unit, e.low, e.high)
+                         for i in range(e.count)]
     return rows
 
 
@@ -179,28 +201,46 @@ def plan_row(entry: Entry, n: int, observer_part, controller_part, last_width: i
     if size != want:
         raise ValueError(f"observation entry {entry.group!r}: its source {entry.source!r} has {size} entries, "
                          f"not {want}")
+    if entry.points:
+        if frm not in (FROM_REFERENCE, FROM_BOUNDS):
+            raise ValueError(f"observation entry {entry.group!r}: only reference and bounds signals can be "
+                             f"previewed, not {entry.source!r}")
+        return frm, col, want * entry.points
     return frm, col, want
 
 
 @njit(cache=True, error_model="numpy")
 def observe_batch(X, t, rp, bp, plant, last, noise, dur, umax, plan, scale, low, high, obs, ref, bnd, state):
     """Fill ``obs`` (N, obs_dim) float32 from the plan of :data:`OBSERVATION` (rows [where from,
-    column, entries, first entry], with each row's ``scale``; ``low`` and ``high`` the box per
-    entry), ``ref`` and ``bnd`` with the reference and bounds at ``t``, and ``state`` (N, 3n) with
-    per joint [e1, g_upper, g_lower] in the g <= 0 convention (positive means the bound is broken).
-    One compiled call per agent step."""
+    column, entries, first entry, preview points], with each row's ``scale``; ``low`` and ``high``
+    the box per entry), ``ref`` and ``bnd`` with the reference and bounds at ``t``, and ``state``
+    (N, 3n) with per joint [e1, g_upper, g_lower] in the g <= 0 convention (positive means the bound
+    is broken). One compiled call per agent step."""
     N = X.shape[0]
     n = noise.shape[1]
+    ahead_ref = np.empty(ref.shape[1])
+    ahead_bnd = np.empty(bnd.shape[1])
     for b in range(N):
         reference_into(t[b], rp[b], plant[b], ref[b])
         bounds_into(t[b], bp[b], bnd[b])
         ka = bnd[b, KA]
         kb = bnd[b, KB]
         for g in range(plan.shape[0]):
-            frm, col, m, at = plan[g, 0], plan[g, 1], plan[g, 2], plan[g, 3]
+            frm, col, m, at, points = plan[g, 0], plan[g, 1], plan[g, 2], plan[g, 3], plan[g, 4]
             c = scale[g]
+            per = m // points if points > 0 else m
             for i in range(m):
-                if frm == FROM_STATE:
+                if points > 0:
+                    # a preview: the entries of time t + (i // per + 1) PREVIEW_STEP, in turn
+                    j = i % per
+                    if j == 0:
+                        ahead = t[b] + (i // per + 1) * PREVIEW_STEP
+                        if frm == FROM_REFERENCE:
+                            reference_into(ahead, rp[b], plant[b], ahead_ref)
+                        else:
+                            bounds_into(ahead, bp[b], ahead_bnd)
+                    v = ahead_ref[col + j] if frm == FROM_REFERENCE else ahead_bnd[col + j]
+                elif frm == FROM_STATE:
                     v = X[b, col + i]
                 elif frm == FROM_LAST:
                     v = last[b, col + i]

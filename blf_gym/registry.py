@@ -8,6 +8,11 @@ plug-in's parameters. The ``baselines`` package registers ``bc``, ``lesobc``, ``
 ``leso``, so the dependency points from ``baselines`` to ``blf_gym`` only; an installed package of
 yours registers its own the same way, and every command and ``gym.make`` then accept its names.
 ``none`` (no inner law, plain RL) is built in.
+
+Whole policies that act on the plain env from its observation (a model-predictive controller, say)
+are found the same way, in the group ``blf_gym.policies``: each entry point is a factory of an
+object with SB3's ``predict(observation, state, episode_start, deterministic)`` and an
+``env_kwargs`` dict, the arguments of the env it acts in. ``blf-eval --agents NAME`` scores one.
 """
 
 from __future__ import annotations
@@ -37,6 +42,8 @@ __all__ = [
     "make_observer",
     "available_controllers",
     "available_observers",
+    "available_policies",
+    "make_policy",
 ]
 
 
@@ -97,3 +104,28 @@ def make_observer(spec: "str | Observer" = "leso", **kwargs: Any) -> Observer:
             raise ValueError("keyword arguments only apply when the observer is given by name")
         return spec
     return _load("blf_gym.observers", "observer", Observer, spec, kwargs)
+
+
+def available_policies() -> list[str]:
+    """Names accepted by :func:`make_policy` (the ``blf_gym.policies`` entry points)."""
+    return sorted(_group("blf_gym.policies"))
+
+
+def make_policy(name: str, **kwargs: Any) -> Any:
+    """A registered policy (``blf_gym.policies``) built by its factory with ``kwargs``: an object
+    with SB3's ``predict`` and ``env_kwargs``, the env arguments it must be scored with (for
+    ``gym.make("PlanarBLF-v0", **policy.env_kwargs)``)."""
+    eps = _group("blf_gym.policies")
+    if name not in eps:
+        raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
+                         "blf_gym.policies entry points; reinstall the project if this list is empty)")
+    try:
+        factory = eps[name].load()
+    except Exception as exc:  # noqa: BLE001 (a plug-in whose extra is missing, reported by name)
+        raise ValueError(f"policy {name!r}: its entry point {eps[name].value} failed to load: "
+                         f"{type(exc).__name__}: {exc}") from exc
+    obj = factory(**kwargs)
+    if not callable(getattr(obj, "predict", None)) or not isinstance(getattr(obj, "env_kwargs", None), dict):
+        raise ValueError(f"entry point {name!r} of blf_gym.policies returned {type(obj).__name__}, which lacks "
+                         "predict(observation, state, episode_start, deterministic) or an env_kwargs dict")
+    return obj

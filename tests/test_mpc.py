@@ -1,0 +1,158 @@
+"""The NMPC (baselines/mpc.py) and the preview it reads: its model against the kernel's dynamics and
+plant, tracking on the nominal plant against BC, its output constraints, a forced solver failure,
+and the registered policy through gym.make and SB3's evaluate_policy.
+
+The solver is built without C code generation here (``compiled=False``, no compiler run) and with a
+short horizon, so each solve takes tens of ms."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import blf_gym  # noqa: F401  (registers the env)
+from blf_gym.dynamics import coriolis_matrix, gravity, mass_matrix
+from blf_gym.observation import PREVIEW_EXTRAS, PREVIEW_POINTS, PREVIEW_STEP, observation_index, observation_layout
+from blf_gym.params import BoundParams, DeadZoneParams, ForceParams, FrictionParams, preset
+
+ca = pytest.importorskip("casadi")
+
+from baselines.mpc import NMPC, NMPCParams, NMPCPolicy, casadi_dynamics  # noqa: E402
+
+
+def test_the_preview_gives_the_reference_and_bounds_the_env_shows_later():
+    env = gym.make("PlanarBLF-v0", scenario="paper-0.5hz", observation_extras=PREVIEW_EXTRAS)
+    ix = observation_index(3, False, PREVIEW_EXTRAS)
+    assert env.observation_space.shape == (len(observation_layout(3, False, PREVIEW_EXTRAS)),)
+    assert ix["q_d_preview"].stop - ix["q_d_preview"].start == 3 * PREVIEW_POINTS
+    obs, _ = env.reset(seed=3)
+    first = obs.copy()
+    rng = np.random.default_rng(0)
+    for k in range(1, 13):  # the env's control period is PREVIEW_STEP: step k is preview point k
+        obs, *_ = env.step(rng.uniform(-0.1, 0.1, 3).astype(np.float32))
+        np.testing.assert_array_equal(obs[ix["q_d"]], first[ix["q_d_preview"]].reshape(-1, 3)[k - 1])
+        np.testing.assert_array_equal(obs[ix["qd_d"]], first[ix["qd_d_preview"]].reshape(-1, 3)[k - 1])
+        assert obs[ix["k_a"]][0] == first[ix["k_a_preview"]][k - 1]
+        assert obs[ix["k_b"]][0] == first[ix["k_b_preview"]][k - 1]
+    # a preview changes over time: point 1 now is not point 1 at the start
+    assert not np.array_equal(obs[ix["q_d_preview"]][:3], first[ix["q_d_preview"]][:3])
+    assert PREVIEW_STEP * PREVIEW_POINTS == pytest.approx(0.3)
+
+
+def test_the_casadi_model_is_the_kernels_nominal_arm():
+    """Derived from the Lagrangian here, checked against blf_gym.dynamics's M, C and G, and the
+    friction against blf_gym.uncertainty's."""
+    from blf_gym.uncertainty import friction
+
+    fp = FrictionParams()
+    bare, rough = casadi_dynamics(), casadi_dynamics(friction=fp)
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        q, qd, u, d = rng.uniform(-3, 3, 3), rng.uniform(-5, 5, 3), rng.uniform(-50, 50, 3), rng.uniform(-9, 9, 3)
+        rest = u - coriolis_matrix(q, qd) @ qd - gravity(q)
+        fr = np.array([friction(v, fp.viscous, fp.coulomb, fp.tanh_slope) for v in qd])
+        for f, want in ((bare, np.linalg.solve(mass_matrix(q), rest) + d),
+                        (rough, np.linalg.solve(mass_matrix(q), rest - fr) + d)):
+            got = np.asarray(f(np.concatenate([q, qd]), u, d)).ravel()
+            np.testing.assert_allclose(got[:3], qd, rtol=0, atol=1e-12)
+            np.testing.assert_allclose(got[3:], want, rtol=1e-9, atol=1e-9)
+
+
+def _nominal(freq: float = 0.5, wide: bool = True, duration: float = 2.0):
+    """The paper preset without friction, dead-zone or force: the arm as the model has it."""
+    sc = preset("paper-0.5hz" if freq == 0.5 else "paper-0.1hz")
+    kw = dict(friction=FrictionParams(viscous=0.0, coulomb=0.0),
+              dead_zone=DeadZoneParams(slope_right=1.0, slope_left=1.0, break_right=0.0, break_left=0.0),
+              force=ForceParams(wrench=(0.0, 0.0, 0.0)), sim=dataclasses.replace(sc.sim, duration=duration))
+    if wide:
+        kw["bounds"] = BoundParams(upper_amplitude=0.0, upper_floor=1.0, lower_amplitude=0.0, lower_floor=1.0)
+    return dataclasses.replace(sc, **kw)
+
+
+def test_the_prediction_matches_the_kernels_plant():
+    """Torques held over 10 ms on the nominal plant: the model's RK4 step against the kernel's ODE3
+    at 0.1 ms, within 1e-4 rad over 10 intervals (RK4's error at 10 ms against 100 steps of 0.1 ms
+    is about 1e-7 rad per interval at these torques; much larger torques on the light third link
+    reach 1e-5 rad)."""
+    nmpc = NMPC(NMPCParams(horizon=10), compiled=False)
+    env = gym.make("PlanarBLF-v0", scenario=_nominal())
+    env.reset(seed=0)
+    x0 = env.unwrapped.core.loop.X[0, :6].copy()  # the plant's true angles and velocities
+    # gravity's torque at the start plus up to 2 N m: the size of the NMPC's own torques
+    torques = gravity(x0[:3]) + np.random.default_rng(2).uniform(-2, 2, (10, 3))
+    pred = nmpc.predict_states(x0, torques)
+    for k, u in enumerate(torques):
+        obs, *_ = env.step((u / 150).astype(np.float32))
+        np.testing.assert_allclose(pred[k, :3], env.unwrapped.core.loop.X[0, :3], rtol=0, atol=1e-4)
+    assert np.abs(pred[-1, :3] - x0[:3]).max() > 1e-3  # the torques moved the arm
+
+
+def _run(policy, scenario, steps):
+    env = gym.make("PlanarBLF-v0", scenario=scenario, terminate_on_violation=False, **policy.env_kwargs)
+    policy.check_env(env)
+    obs, _ = env.reset(seed=0)
+    errs, viol = [], 0
+    for _ in range(steps):
+        a, _ = policy.predict(obs)
+        obs, _, _, _, info = env.step(a)
+        errs.append(info["e1"])
+        viol += int(np.any(info["g_upper"] > 0) or np.any(info["g_lower"] > 0))
+    return np.array(errs), viol
+
+
+def test_it_tracks_the_nominal_plant_better_than_bc():
+    from blf_gym.simulate import simulate_batch
+    from blf_gym.registry import make_controller
+
+    sc = _nominal(wide=True, duration=1.0)
+    errs, _ = _run(NMPCPolicy(NMPCParams(horizon=10), compiled=False), sc, 100)
+    rmse_mpc = np.sqrt(np.mean(errs[20:] ** 2, axis=0))
+    tr = simulate_batch([sc], make_controller("bc"))[0]
+    late = tr.signals["t"] >= 0.2  # the same window as the NMPC's (steps 20-99 of 10 ms)
+    rmse_bc = np.sqrt(np.mean(tr.signals["e1"][late] ** 2, axis=0))
+    assert np.all(rmse_mpc < rmse_bc), (rmse_mpc, rmse_bc)
+
+
+def test_it_keeps_active_output_constraints_on_the_nominal_plant():
+    """Weights that favour torque over tracking make the funnel the active limit: the soft
+    constraints keep the error inside it, where the unconstrained optimum would leave it."""
+    sc = _nominal(wide=False, duration=1.0)
+    lazy = dict(horizon=10, q_weight=1e-2, qd_weight=0.0, u_weight=1.0, du_weight=0.0)
+    errs, viol = _run(NMPCPolicy(NMPCParams(**lazy), compiled=False), sc, 100)
+    assert viol == 0
+    errs_free, viol_free = _run(NMPCPolicy(NMPCParams(**lazy, penalty=0.0), compiled=False), sc, 100)
+    assert viol_free > 0  # without the constraints the same weights break the bounds
+
+
+def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
+    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1), compiled=False)
+    errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
+    rep = pol.report()
+    assert rep["solves"] == 20 and rep["fallbacks"] == 20
+    assert set(rep["statuses"]) == {"Maximum_Iterations_Exceeded"}
+    assert np.all(np.isfinite(errs)) and np.abs(errs).max() < 0.2  # the computed-torque fallback holds it
+
+
+def test_the_registered_policy_runs_under_evaluate_policy():
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.evaluation import evaluate_policy
+
+    from blf_gym.registry import available_policies, make_policy
+
+    assert "nmpc" in available_policies()
+    pol = make_policy("nmpc", horizon=5, compiled=False)
+    venv = make_vec_env("PlanarBLF-v0", n_envs=1, seed=0,
+                        env_kwargs=dict(scenario=_nominal(duration=0.1), **pol.env_kwargs))
+    mean, _ = evaluate_policy(pol, venv, n_eval_episodes=1)
+    assert np.isfinite(mean) and pol.report()["solves"] == 10
+    with pytest.raises(ValueError, match="unknown NMPC parameter"):
+        make_policy("nmpc", horizon_s=1.0)
+    with pytest.raises(ValueError, match="horizon x sample_period"):
+        NMPCParams(horizon=40)
+    with pytest.raises(ValueError, match="control_period"):
+        pol.check_env(gym.make("PlanarBLF-v0", observation_extras=PREVIEW_EXTRAS, control_period=0.02))
+    with pytest.raises(ValueError, match="preview"):
+        pol.check_env(gym.make("PlanarBLF-v0"))
