@@ -61,6 +61,7 @@ from blf_gym.observation import (
     SQUASH_REF_ACCELERATION,
     SQUASH_VELOCITY,
     observation_index,
+    unsquash,
 )
 from blf_gym.params import ArmParams, FrictionParams
 
@@ -436,10 +437,6 @@ class NMPCPolicy:
         """The problem's data from one observation row (float64)."""
         ix, n, p = self._index, self.nmpc.n, self.params
         o = o.astype(np.float64)
-
-        def unsquash(v: np.ndarray, c: float) -> np.ndarray:
-            return c * np.arctanh(np.clip(v / c, -1 + 1e-12, 1 - 1e-12))
-
         x0 = np.concatenate([o[ix["y"]], unsquash(o[ix["x2_hat"]], SQUASH_VELOCITY)])
         # the observer's lumped disturbance holds the friction at the current velocity; the model
         # has its own, so the held rest is x3_hat less that part
@@ -455,7 +452,7 @@ class NMPCPolicy:
         kb_all = np.concatenate([o[ix["k_b"]], o[ix["k_b_preview"]]])
 
         def at(v: np.ndarray) -> np.ndarray:
-            return v if len(tk) == len(tp) and p.sample_period == PREVIEW_STEP else np.interp(tk, tp, v)
+            return np.interp(tk, tp, v)  # exact at the preview's own times
 
         qref = np.array([at(q_all[:, j]) for j in range(n)])
         qdref = np.array([at(qd_all[:, j]) for j in range(n)])

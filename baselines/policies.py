@@ -28,7 +28,8 @@ import numpy as np
 
 from blf_gym.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
 from blf_gym.bounds import BOUND_LEN, KA, KA_DDOT, KA_DOT, KB, KB_DDOT, KB_DOT
-from blf_gym.observation import SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout
+from blf_gym.observation import (SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout,
+                                  unsquash)
 from blf_gym.reference import REFERENCE_SIGNALS
 from blf_gym.params import BoundParams
 
@@ -46,10 +47,6 @@ _KAD, _KBD = _IDX["k_a_rate"].start, _IDX["k_b_rate"].start
 _TIME = _IDX["time"].start
 _QD_TRUE = _IDX["qd"]
 _SQ_VEL, _SQ_ACC = SQUASH_VELOCITY, SQUASH_REF_ACCELERATION
-
-
-def _unsquash(x: np.ndarray, c: float) -> np.ndarray:
-    return c * np.arctanh(np.clip(x / c, -1 + 1e-12, 1 - 1e-12))
 
 
 class BaselinePolicy:
@@ -150,8 +147,8 @@ class BaselinePolicy:
                 self._xhat[i] = leso_ode3(self._xhat[i], self._y_prev[i], self._u_prev[i],
                                           self._nominal, self._k0, self.dt, self._work)
             ref[:_N] = obs[i, _QD_REF]
-            ref[_N : 2 * _N] = _unsquash(obs[i, _QD_D].astype(np.float64), _SQ_VEL)
-            ref[2 * _N :] = _unsquash(obs[i, _QDD_D].astype(np.float64), _SQ_ACC)
+            ref[_N : 2 * _N] = unsquash(obs[i, _QD_D].astype(np.float64), _SQ_VEL)
+            ref[2 * _N :] = unsquash(obs[i, _QDD_D].astype(np.float64), _SQ_ACC)
             ka, kb = float(obs[i, _KA]), float(obs[i, _KB])
             kad, kbd = float(obs[i, _KAD]), float(obs[i, _KBD])
             r = self.bounds.decay_rate  # exponential bounds: k'' = -r k'
@@ -160,7 +157,7 @@ class BaselinePolicy:
                 if obs.shape[1] < _QD_TRUE.stop:
                     raise ValueError(f"{self.name} reads the true velocity (a full-state law): make the env with "
                                      "privileged=True")
-                qd = _unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
+                qd = unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
             else:
                 qd = np.zeros(_N)
             nominal_model_into(y, self._nominal, self._nom, self._work)

@@ -22,7 +22,7 @@ from .status import LAST_COLUMNS
 
 __all__ = ["Entry", "OBSERVATION", "SOURCES", "optional_observations", "observation_index", "observation_layout",
            "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE", "PREVIEW_STEP", "PREVIEW_POINTS",
-           "PREVIEW_EXTRAS", "observe_batch"]
+           "PREVIEW_EXTRAS", "unsquash", "observe_batch"]
 
 # Squashing scales (value -> c tanh(value / c)) of the unbounded observation entries, and clips.
 SQUASH_VELOCITY = 100.0
@@ -35,6 +35,14 @@ ANGLE_CLIP = 4.0 * math.pi
 """Box of the angle entries (y, q_d), rad."""
 ERROR_CLIP = 10.0
 """Box of the normalized error entries."""
+
+
+def unsquash(x: "np.ndarray", c: float) -> "np.ndarray":
+    """A squashed entry's value (the inverse of c tanh(value / c)); entries at the box's edge give
+    the largest finite value."""
+    return c * np.arctanh(np.clip(np.asarray(x, dtype=np.float64) / c, -1 + 1e-12, 1 - 1e-12))
+
+
 PREVIEW_STEP = 0.01
 """Spacing of the preview entries' future times, s (they give a signal at t + k PREVIEW_STEP)."""
 PREVIEW_POINTS = 30

@@ -12,7 +12,7 @@ yours registers its own the same way, and every command and ``gym.make`` then ac
 Whole policies that act on the plain env from its observation (a model-predictive controller, say)
 are found the same way, in the group ``blf_gym.policies``: each entry point is a factory of an
 object with SB3's ``predict(observation, state, episode_start, deterministic)`` and an
-``env_kwargs`` dict, the arguments of the env it acts in. ``blf-eval --agents NAME`` scores one.
+``env_kwargs`` dict, the arguments of the env it acts in (``blf-eval`` does not take them yet).
 """
 
 from __future__ import annotations
@@ -61,19 +61,24 @@ def available_observers() -> list[str]:
     return sorted(_group("blf_gym.observers"))
 
 
-def _load(group: str, kind: str, cls: type, spec: Any, kwargs: dict[str, Any]) -> Any:
+def _factory(group: str, kind: str, spec: Any, names: Any, tail: str) -> Any:
+    """The factory registered as ``spec`` in the entry-point group ``group``; ValueError naming the
+    accepted names (``names()``, then ``tail``) when there is none, or naming the entry point that
+    fails to load."""
     eps = _group(group)
     if spec not in eps:
-        names = available_controllers() if cls is Controller else available_observers()
-        raise ValueError(
-            f"unknown {kind} {spec!r}; accepted values: {names} (or a blf_gym.blocks.{cls.__name__} object). "
-            "If the paper's are missing, install the project (pip install -e .) so its entry points are registered."
-        )
+        raise ValueError(f"unknown {kind} {spec!r}; accepted values: {names()} {tail}")
     try:
-        factory = eps[spec].load()
+        return eps[spec].load()
     except Exception as exc:  # noqa: BLE001 (a broken plug-in package, reported by name)
         raise ValueError(f"{kind} {spec!r}: its entry point {eps[spec].value} failed to load: "
                          f"{type(exc).__name__}: {exc}") from exc
+
+
+def _load(group: str, kind: str, cls: type, spec: Any, kwargs: dict[str, Any]) -> Any:
+    names = available_controllers if cls is Controller else available_observers
+    factory = _factory(group, kind, spec, names, f"(or a blf_gym.blocks.{cls.__name__} object). If the paper's "
+                       "are missing, install the project (pip install -e .) so its entry points are registered.")
     obj = factory(**kwargs)
     if not isinstance(obj, cls):
         raise ValueError(f"entry point {spec!r} of {group} returned {type(obj).__name__}, not a "
@@ -115,15 +120,8 @@ def make_policy(name: str, **kwargs: Any) -> Any:
     """A registered policy (``blf_gym.policies``) built by its factory with ``kwargs``: an object
     with SB3's ``predict`` and ``env_kwargs``, the env arguments it must be scored with (for
     ``gym.make("PlanarBLF-v0", **policy.env_kwargs)``)."""
-    eps = _group("blf_gym.policies")
-    if name not in eps:
-        raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
-                         "blf_gym.policies entry points; reinstall the project if this list is empty)")
-    try:
-        factory = eps[name].load()
-    except Exception as exc:  # noqa: BLE001 (a plug-in whose extra is missing, reported by name)
-        raise ValueError(f"policy {name!r}: its entry point {eps[name].value} failed to load: "
-                         f"{type(exc).__name__}: {exc}") from exc
+    factory = _factory("blf_gym.policies", "policy", name, available_policies,
+                       "(the blf_gym.policies entry points; reinstall the project if this list is empty)")
     obj = factory(**kwargs)
     if not callable(getattr(obj, "predict", None)) or not isinstance(getattr(obj, "env_kwargs", None), dict):
         raise ValueError(f"entry point {name!r} of blf_gym.policies returned {type(obj).__name__}, which lacks "
