@@ -72,22 +72,75 @@ def _nominal(freq: float = 0.5, wide: bool = True, duration: float = 2.0):
     return dataclasses.replace(sc, **kw)
 
 
-def test_the_prediction_matches_the_kernels_plant():
-    """Torques held over 10 ms on the nominal plant: the model's RK4 step against the kernel's ODE3
-    at 0.1 ms, within 1e-4 rad over 10 intervals (RK4's error at 10 ms against 100 steps of 0.1 ms
-    is about 1e-7 rad per interval at these torques; much larger torques on the light third link
-    reach 1e-5 rad)."""
-    nmpc = NMPC(NMPCParams(horizon=10), compiled=False)
-    env = gym.make("PlanarBLF-v0", scenario=_nominal())
+def _frictional(duration: float = 2.0):
+    """The paper preset with its friction but no dead-zone or force: the plant the default model
+    (with the nominal friction) has."""
+    sc = preset("paper-0.5hz")
+    return dataclasses.replace(
+        sc, dead_zone=DeadZoneParams(slope_right=1.0, slope_left=1.0, break_right=0.0, break_left=0.0),
+        force=ForceParams(wrench=(0.0, 0.0, 0.0)), sim=dataclasses.replace(sc.sim, duration=duration))
+
+
+_NO_FRICTION = dict(friction=FrictionParams(viscous=0.0, coulomb=0.0), substeps=1)
+"""The model of the friction-free plant of :func:`_nominal` (RK4 needs no substeps without it)."""
+
+
+def _open_loop(scenario, torques, steps=10):
+    """The plant's true states after each torque held over 10 ms, from its reset state."""
+    env = gym.make("PlanarBLF-v0", scenario=scenario, controller="none", control_period=0.01,
+                   terminate_on_violation=False)
     env.reset(seed=0)
-    x0 = env.unwrapped.core.loop.X[0, :6].copy()  # the plant's true angles and velocities
+    x0 = env.unwrapped.core.loop.X[0, :6].copy()
+    out = []
+    for u in torques[:steps]:
+        env.step((u / 150).astype(np.float32))
+        out.append(env.unwrapped.core.loop.X[0, :6].copy())
+    return x0, np.array(out)
+
+
+@pytest.mark.parametrize("frictional", [False, True])
+def test_the_prediction_matches_the_kernels_plant(frictional):
+    """Torques held over 10 ms: the model's RK4 steps against the kernel's ODE3 at 0.1 ms, within
+    1e-4 rad over 10 intervals, on the friction-free plant (one RK4 step per interval: its error at
+    these torques is about 1e-7 rad per interval) and on the plant with the paper's friction (ten
+    steps of 1 ms, the default: about 4e-5 rad). Without its friction the model is wrong by over
+    0.1 rad on the frictional plant within those 100 ms: the friction's mode on the light third link
+    sets the arm's response to a held torque."""
+    sc = _frictional() if frictional else _nominal()
+    nmpc = NMPC(NMPCParams(horizon=10, **({} if frictional else _NO_FRICTION)), compiled=False)
+    x0, _ = _open_loop(sc, np.zeros((0, 3)))
     # gravity's torque at the start plus up to 2 N m: the size of the NMPC's own torques
     torques = gravity(x0[:3]) + np.random.default_rng(2).uniform(-2, 2, (10, 3))
+    _, true = _open_loop(sc, torques)
     pred = nmpc.predict_states(x0, torques)
-    for k, u in enumerate(torques):
-        obs, *_ = env.step((u / 150).astype(np.float32))
-        np.testing.assert_allclose(pred[k, :3], env.unwrapped.core.loop.X[0, :3], rtol=0, atol=1e-4)
+    np.testing.assert_allclose(pred[:, :3], true[:, :3], rtol=0, atol=1e-4)
     assert np.abs(pred[-1, :3] - x0[:3]).max() > 1e-3  # the torques moved the arm
+    if frictional:
+        bare = NMPC(NMPCParams(horizon=10, **_NO_FRICTION), compiled=False).predict_states(x0, torques)
+        assert np.abs(bare[:, :3] - true[:, :3]).max() > 0.1
+
+
+def test_the_estimator_finds_the_velocity_and_a_constant_disturbance():
+    """The NMPC's extended Kalman filter on the frictional plant, from angles alone at 10 ms: the
+    velocity it estimates after 30 samples is the plant's to 0.02 rad/s, although it starts from zero
+    velocity and a wrong model (the plant's friction is doubled, a disturbance the estimate absorbs,
+    so it must not drift either)."""
+    from baselines.mpc import _Arm, _estimate
+
+    sc = _frictional()
+    sc = dataclasses.replace(sc, friction=FrictionParams(viscous=1.0, coulomb=0.4))
+    nmpc = NMPC(NMPCParams(horizon=10), compiled=False)
+    x0, _ = _open_loop(sc, np.zeros((0, 3)))
+    torques = gravity(x0[:3]) + 0.5 * np.sin(np.arange(40)[:, None] * 0.3 + np.arange(3))  # a slow sweep
+    _, true = _open_loop(sc, torques, 40)
+    arm = _Arm()
+    _estimate(nmpc, arm, x0[:3], np.zeros(3))
+    errs = []
+    for k in range(40):
+        z = _estimate(nmpc, arm, true[k, :3], torques[k])
+        errs.append(np.abs(z[3:6] - true[k, 3:]).max())
+    assert errs[0] > 0.05  # it did have something to find
+    assert max(errs[30:]) < 0.02, errs
 
 
 def _run(policy, scenario, steps):
@@ -108,7 +161,7 @@ def test_it_tracks_the_nominal_plant_better_than_bc():
     from blf_gym.registry import make_controller
 
     sc = _nominal(wide=True, duration=1.0)
-    errs, _ = _run(NMPCPolicy(NMPCParams(horizon=10), compiled=False), sc, 100)
+    errs, _ = _run(NMPCPolicy(NMPCParams(horizon=10, **_NO_FRICTION), compiled=False), sc, 100)
     rmse_mpc = np.sqrt(np.mean(errs[20:] ** 2, axis=0))
     tr = simulate_batch([sc], make_controller("bc"))[0]
     late = tr.signals["t"] >= 0.2  # the same window as the NMPC's (steps 20-99 of 10 ms)
@@ -120,7 +173,7 @@ def test_it_keeps_active_output_constraints_on_the_nominal_plant():
     """Weights that favour torque over tracking make the funnel the active limit: the soft
     constraints keep the error inside it, where the unconstrained optimum would leave it."""
     sc = _nominal(wide=False, duration=1.0)
-    lazy = dict(horizon=10, q_weight=1e-2, qd_weight=0.0, u_weight=1.0, du_weight=0.0)
+    lazy = dict(horizon=10, q_weight=1e-2, qd_weight=0.0, u_weight=1.0, du_weight=0.0, **_NO_FRICTION)
     errs, viol = _run(NMPCPolicy(NMPCParams(**lazy), compiled=False), sc, 100)
     assert viol == 0
     errs_free, viol_free = _run(NMPCPolicy(NMPCParams(**lazy, penalty=0.0), compiled=False), sc, 100)
@@ -128,7 +181,7 @@ def test_it_keeps_active_output_constraints_on_the_nominal_plant():
 
 
 def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
-    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1), compiled=False)
+    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, **_NO_FRICTION), compiled=False)
     errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
     rep = pol.report()
     assert rep["solves"] == 20 and rep["fallbacks"] == 20
@@ -143,7 +196,7 @@ def test_the_registered_policy_runs_under_evaluate_policy():
     from blf_gym.registry import available_policies, make_policy
 
     assert "nmpc" in available_policies()
-    pol = make_policy("nmpc", horizon=5, compiled=False)
+    pol = make_policy("nmpc", horizon=5, compiled=False, **_NO_FRICTION)
     venv = make_vec_env("PlanarBLF-v0", n_envs=1, seed=0,
                         env_kwargs=dict(scenario=_nominal(duration=0.1), **pol.env_kwargs))
     mean, _ = evaluate_policy(pol, venv, n_eval_episodes=1)
