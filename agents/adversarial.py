@@ -24,6 +24,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym.io import help_text
 from blf_gym.params import PRESETS
 
 __all__ = ["sequences", "run", "main"]
@@ -213,7 +214,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from blf_gym.io import atomic_write_json, atomic_write_text, check_out_dir, os_error_message
     from blf_gym.metrics import provenance
 
-    p = argparse.ArgumentParser(prog="python -m agents.adversarial", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m agents.adversarial", description=help_text(__doc__.split("\n\n")[0]))
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for certificate.json and .md")
     p.add_argument("--suite-seeds", type=int, nargs=2, default=[10, 20], metavar=("RANDOMIZED", "STRESS"),
                    help="episodes of the training suite's held-out seeds and of the stress suite (default 10 20)")

@@ -20,6 +20,8 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
+from blf_gym.io import help_text
+
 from .evaluate import CURVE_GROUPS
 
 __all__ = ["main", "plot_curves"]
@@ -88,7 +90,7 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-curves", description=__doc__,
+    p = argparse.ArgumentParser(prog="blf-curves", description=help_text(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="run folders written by blf-train")
     p.add_argument("--out", type=Path, default=None, metavar="PNG",

@@ -40,6 +40,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import sys
 import time
 from dataclasses import dataclass
@@ -48,14 +49,14 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, os_error_message
+from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, help_text, os_error_message
 from blf_gym.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
 from . import lawcache
 from .lawcache import law_key, load_law, store_law
-from .loading import PRETRAINED, load_agent, scoring_env_kwargs  # the one agent loader, re-exported here
+from .loading import POLICY_PREFIX, PRETRAINED, load_agent, load_policy, scoring_env_kwargs  # the one agent loader, re-exported here
 
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes",
            "agent_group_episodes", "law_env_kwargs", "law_reference", "law_reference_groups",
@@ -107,9 +108,9 @@ def build_scenarios(
     """[(scenario label, episodes)]: each preset is one episode; each suite in ``suite`` has its
     ``suite_seeds`` episodes (one count for all suites, or one per suite).
 
-    With variations (``kwargs``) every label gains ``+custom``, so a varied result is never
-    mistaken for the plain one; the variations themselves are recorded in each record's
-    provenance by blf-eval."""
+    With variations (``kwargs``) every label gains them (:func:`variation_label`: ``+frequency=0.5``,
+    or ``+custom`` when they do not fit in a short label), so a varied result is never mistaken for
+    the plain one; the variations themselves are recorded in each record's provenance by blf-eval."""
     suites = [suite] if isinstance(suite, str) else list(suite)
     counts = [suite_seeds] * len(suites) if isinstance(suite_seeds, int) else list(suite_seeds)
     if len(counts) == 1 and len(suites) > 1:
@@ -126,7 +127,7 @@ def build_scenarios(
             raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
         sc = preset(name, **sim_over)
         if kwargs:
-            sc = apply_variations(sc, kwargs, name=f"{name}+custom")
+            sc = apply_variations(sc, kwargs, name=name + variation_label(kwargs))
         groups.append((sc.name, [sc]))
     for name, count in zip(suites, counts):
         if count == 0:
@@ -138,8 +139,25 @@ def build_scenarios(
             if kwargs:
                 sc = apply_variations(sc, kwargs)
             eps.append(sc)
-        groups.append((name + ("+custom" if kwargs else ""), eps))
+        groups.append((name + variation_label(kwargs), eps))
     return groups
+
+
+VARIATION_LABEL_MAX = 40
+"""The longest variation suffix a scenario label carries; longer ones become ``+custom``."""
+
+
+def variation_label(kwargs: dict[str, Any]) -> str:
+    """The suffix a varied group's label gains: the knobs and their values, sorted
+    (``+force=20,frequency=0.5``), or ``+custom`` past :data:`VARIATION_LABEL_MAX` characters or
+    with characters a file name should not hold; empty without variations. The label names what
+    was run: a 0.1 Hz preset varied to 0.5 Hz reads ``paper-0.1hz+frequency=0.5``."""
+    if not kwargs:
+        return ""
+    text = ",".join(f"{k}={json.dumps(v, separators=(',', ':'))}" for k, v in sorted(kwargs.items()))
+    if len(text) > VARIATION_LABEL_MAX or not re.fullmatch(r"[\w.,=\[\]+-]+", text):
+        return "+custom"
+    return "+" + text
 
 
 CONTROLLER_BATCH = 8
@@ -331,6 +349,8 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     # the same env the loader checked the agent against
     kw = scoring_env_kwargs(meta["env_kwargs"])
     act = None if model is None else _Actor(model)
+    # a policy that keeps per-arm state (``whole_batch``, e.g. the NMPC) sees every arm in one call
+    whole = bool(getattr(model, "whole_batch", False))
     for parts in _batch_plan(groups, batch):
         t0 = time.perf_counter()
         scs = [sc for g, lo, hi in parts for sc in groups[g][lo:hi]]
@@ -352,6 +372,9 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
             policy = act if act is not None else (lambda o: np.zeros((o.shape[0], core.n)))
             for _ in range(periods):
                 o = norm.normalize_obs(obs) if norm is not None else obs
+                if whole:  # one call with every arm: the policy keeps each row's state itself
+                    obs, *_ = core.step(policy(o))
+                    continue
                 acts = [policy(o[rs]) for rs in rows]
                 obs, *_ = core.step(acts[0] if len(acts) == 1 else np.concatenate(acts))
         if on_batch is not None:
@@ -469,7 +492,7 @@ are all the same (records say law_reused); --fresh-law simulates them again."""
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-eval", description=__doc__.split("\n\n")[0], epilog=_EPILOG,
+    p = argparse.ArgumentParser(prog="blf-eval", description=help_text(__doc__.split("\n\n")[0]), epilog=_EPILOG,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--controllers", nargs="*", default=None, metavar="NAME",
                    help=f"baseline controllers to score on the inner path (default: every registered one, "
@@ -480,6 +503,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
                    help="trained agents: blf-train run folders or their model zips (default: the shipped "
                         "ones in agents/pretrained; none with an empty list)")
+    p.add_argument("--policies", nargs="*", default=[], metavar="NAME",
+                   help="registered policies (the blf_gym.policies entry points, e.g. nmpc) to score like agents, "
+                        "each with the env arguments it asks for (default: none; they can be slow)")
     p.add_argument("--residual-filter", default=None, metavar="NAME",
                    help="run every agent through this residual filter of the proposed law (barrier or cbf), its name "
                         "gaining +NAME, or 'none' to run every agent without one (default: each agent's own, "
@@ -520,14 +546,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _law_rmse(records: Sequence[dict[str, Any]], r: dict[str, Any]) -> list[float] | None:
-    """The proposed law's pooled RMSE on the record's scenario group, if it was scored."""
-    for x in records:
-        if x["policy"] == "proposed" and x["kind"] == "baseline" and x["scenario"] == r["scenario"]:
-            return x["rmse_deg"] if all(v is not None for v in x["rmse_deg"]) else None
-    return None
-
-
 class _PlotTrace:
     """What the plots draw of a group's first episode (time, error, bounds, torque), kept instead of
     the whole trajectory: a third of its memory, for every policy and group."""
@@ -537,35 +555,64 @@ class _PlotTrace:
         self.n_samples = tr.n_samples
 
 
+TABLE_NAME_MAX = 28
+"""The widest policy name blf-eval's table prints whole; a longer one keeps its start and end
+around an ellipsis (results.json has every name whole)."""
+
+
+def _fit(name: str, width: int = TABLE_NAME_MAX) -> str:
+    if len(name) <= width:
+        return name
+    head = (width - 1) // 2
+    return name[:head] + "\u2026" + name[len(name) - (width - 1 - head):]
+
+
+def _num(x: float | None, digits: int = 4) -> str:
+    """A table number in at most 8 characters: fixed point while it fits, else 1.23e+04."""
+    if x is None:
+        return "-"
+    for p in range(digits, -1, -1):
+        text = f"{x:.{p}f}"
+        if len(text) <= 8 and (p >= 1 or abs(x) >= 100):
+            return text
+    return f"{x:.2e}"
+
+
 def _table(records: Sequence[dict[str, Any]]) -> str:
-    head = (f"{'policy':<16} {'kind':<8} {'scenario':<14} {'ep':>3} | {'RMSE j1':>8} {'j2':>8} {'j3':>8} | "
-            f"{'/ law j1':>8} {'j2':>6} {'j3':>6} | {'score':>6} | "
-            f"{'viol':>6} {'frac':>7} {'fail':>5} {'cert':>5} | {'CVaR':>7} | {'excess':>7} {'margin':>7} | "
-            f"{'1st viol':>8} | {'u rms':>16} {'u peak':>17}")
-    lines = [head, "-" * len(head)]
+    """blf-eval's console table: one row per record, each column as wide as its widest entry (so
+    long names, labels and five-digit RMSEs keep the columns aligned), groups split by ``|``. The
+    last column, ``div``, says ``yes`` when an episode of the group diverged."""
+    head = [["policy", "kind", "scenario", "ep"], ["RMSE j1", "j2", "j3"], ["score"],
+            ["viol", "frac", "fail", "cert"], ["CVaR"], ["excess", "margin"], ["1st viol"], ["u rms", "u peak"],
+            ["div"]]
+    rows = []
     for r in records:
-        def f3(v, p=4):
-            return " ".join(("-" if x is None else f"{x:.{p}f}").rjust(8) for x in v)
         viol = sum(v for v in r["violations"] if v is not None)
         frac = max((v for v in r["violation_fraction"] if v is not None), default=0.0)
         exc = max((v for v in r["max_excursion_deg"] if v is not None), default=0.0)
         mar = min((v for v in r["min_margin_deg"] if v is not None), default=0.0)
-        fv = "-" if r["first_violation_s"] is None else f"{r['first_violation_s']:.3f}"
-        cvar = "-" if r["rmse_cvar_deg"] is None else f"{r['rmse_cvar_deg']:.4f}"
-        law = _law_rmse(records, r)
-        if law is not None and all(v is not None for v in r["rmse_deg"]):
-            ratio = f"{r['rmse_deg'][0] / law[0]:>8.3f} " + " ".join(f"{r['rmse_deg'][j] / law[j]:>6.3f}" for j in (1, 2))
-        else:
-            ratio = f"{'-':>8} {'-':>6} {'-':>6}"
-        score = "-" if r.get("score_vs_law") is None else f"{r['score_vs_law']:.3f}"
-        cert = "-" if r.get("certificate_broken") is None else f"{r['certificate_broken']:.2f}"
-        urms = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_rms"])
-        upk = "/".join("-" if v is None else f"{v:.1f}" for v in r["torque_peak"])
-        lines.append(
-            f"{r['policy']:<16} {r['kind']:<8} {r['scenario']:<14} {r['episodes']:>3} | {f3(r['rmse_deg'])} | "
-            f"{ratio} | {score:>6} | "
-            f"{viol:>6} {frac:>7.4f} {r['failure_rate']:>5.2f} {cert:>5} | {cvar:>7} | {exc:>7.3f} {mar:>7.3f} | "
-            f"{fv:>8} | {urms:>16} {upk:>17}" + ("  DIVERGED" if r["diverged"] else ""))
+        rows.append([
+            [_fit(str(r["policy"])), r["kind"], r["scenario"], str(r["episodes"])],
+            [_num(v) for v in r["rmse_deg"]],
+            [_num(r.get("score_vs_law"), 3)],
+            [str(viol), f"{frac:.4f}", f"{r['failure_rate']:.2f}", _num(r.get("certificate_broken"), 2)],
+            [_num(r["rmse_cvar_deg"])],
+            [_num(exc, 3), _num(mar, 3)],
+            [_num(r["first_violation_s"], 3)],
+            ["/".join("-" if v is None else f"{v:.1f}" for v in r[k]) for k in ("torque_rms", "torque_peak")],
+            ["yes" if r["diverged"] else "-"]])
+    widths = [[max(len(x) for x in col) for col in zip(*(row[g] for row in [head, *rows]))]
+              for g in range(len(head))]
+    left = {(0, 0), (0, 1), (0, 2)}  # names and labels read from the left, numbers from the right
+
+    def line(row: list[list[str]]) -> str:
+        return " | ".join(" ".join(x.ljust(w) if (g, i) in left else x.rjust(w)
+                                   for i, (x, w) in enumerate(zip(cells, widths[g])))
+                          for g, cells in enumerate(row)).rstrip()
+
+    lines = [line(head)]
+    lines.append("-" * len(lines[0]))
+    lines += [line(row) for row in rows]
     return "\n".join(lines)
 
 
@@ -681,6 +728,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         agents = [(p, *load_agent(p)) for p in agent_paths]
         if args.residual_filter is not None:
             agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
+        from blf_gym.registry import available_policies
+
+        for name in args.policies:
+            if name not in available_policies():
+                raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
+                                 "blf_gym.policies entry points)")
+        agents += [(POLICY_PREFIX + name, *load_policy(name)) for name in args.policies]
         if not args.controllers and not agents:
             raise ValueError("nothing to evaluate: give --controllers and/or --agents")
     except ValueError as exc:
@@ -827,7 +881,9 @@ def _law_env_piece(ctx: _Context, meta: dict[str, Any], gs: list[int], keys: lis
 def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
     """An agent's episodes on every group; ``agent`` is its (model, metadata, statistics) or, in a
     worker process, the path it is loaded from (with the run's --residual-filter)."""
-    if isinstance(agent, Path):
+    if isinstance(agent, str):  # a registered policy, by name
+        model, meta, norm = load_policy(agent)
+    elif isinstance(agent, Path):
         import torch
 
         torch.set_num_threads(1)  # as in the main process (see main)
@@ -853,7 +909,11 @@ def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
         stats, first = per[g]
         _reduce(ctx, name, g, len(stats), tr, stats, first, files)
         del tr
-    return {"per": per, "walls": walls, "files": files}
+    # a registered policy's own account (the NMPC's solve times and fallbacks), for the records
+    report = model.report() if callable(getattr(model, "report", None)) else None
+    if callable(getattr(model, "close", None)) and isinstance(agent, str):
+        model.close()
+    return {"per": per, "walls": walls, "files": files, "report": report}
 
 
 _PIECES = {"baseline": _baseline_piece, "inner_law": _inner_law_piece, "law_env": _law_env_piece,
@@ -984,7 +1044,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     kwargs = kwargs or {}
     meta_out = provenance(command=getattr(args, "command", None))
     jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
-    jobs += [(meta.get("name", p.parent.name), meta["mode"], (p, model, meta, norm)) for p, model, meta, norm in agents]
+    jobs += [(meta.get("name") or Path(p).parent.name, meta["mode"], (p, model, meta, norm))
+             for p, model, meta, norm in agents]
     n_jobs = 1 if workers is None else getattr(args, "jobs", 1)
     ctx = _Context(groups=groups, observer=args.observer,
                    # the workers share the cores: one thread each unless told
@@ -1058,6 +1119,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             meta = agent[2]
             prov.update(env_kwargs=meta.get("env_kwargs"), train_seed=meta.get("seed"),
                         observer=(meta.get("env_kwargs") or {}).get("observer", "leso"))
+            if meta.get("policy"):  # a registered policy: its name and its own account of the run
+                prov.update(registered_policy=meta["policy"], policy_report=part.get("report"))
         else:
             prov.update(observer=args.observer)
         rec = summarize(part["stats"], name, kind, label, scs[0].sim.dt, wall_s=part["wall"], law=law,
@@ -1098,8 +1161,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             j = piece.job
             traj_files.extend(result["files"])
             for g, (stats, first) in enumerate(result["per"]):
-                waiting.append((j, g, {"stats": stats, "first": first, "wall": result["walls"][g]},
-                                (law_tags[j], g)))
+                waiting.append((j, g, {"stats": stats, "first": first, "wall": result["walls"][g],
+                                       "report": result.get("report")}, (law_tags[j], g)))
         settle()
 
     try:
@@ -1114,8 +1177,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             bar.close()
     records = [r[2] for r in results]
     print(_table(records))
-    print("\nRMSE per joint, pooled over the group's episodes, in degrees; / law: that RMSE over the "
-          "proposed law's on the same group; score: score_vs_law, the geometric mean over joints of "
+    print("\nRMSE per joint, pooled over the group's episodes, in degrees; score: score_vs_law, the geometric mean over joints of "
           "the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs (per "
           "episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: "
           "the worst joint's violating fraction; fail: share of episodes with a violation or divergence; "
@@ -1123,7 +1185,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
           "the same scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half "
           "of the episodes; excess (largest distance beyond a bound) and margin (closest approach to a "
           "bound, negative when beyond): worst joint, in degrees; 1st viol: earliest violation (s); "
-          "torques in N m per joint.")
+          "torques in N m per joint; div: yes when an episode's simulation diverged (results.json: diverged). "
+          f"Names longer than {TABLE_NAME_MAX} characters are shortened here, not in results.json.")
     if args.out is not None:
         files = list(write_results(records, args.out, meta_out))
         written = [] if args.no_plots else _plots([(r[2], r[3]) for r in results], args.out)

@@ -33,8 +33,8 @@ import re
 from pathlib import Path
 from typing import Any
 
-__all__ = ["algorithm_class", "available_algorithms", "check_agent_folder", "load_agent", "load_pretrained",
-           "pretrained_agents", "scoring_env_kwargs"]
+__all__ = ["POLICY_PREFIX", "algorithm_class", "available_algorithms", "check_agent_folder", "load_agent",
+           "load_policy", "load_pretrained", "pretrained_agents", "scoring_env_kwargs"]
 
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 
@@ -298,6 +298,29 @@ def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
     norm = _statistics(stats, path, model) if _normalization_stated(meta, meta_path, stats) else None
     _check_spaces(model, meta, meta_path, path, _scoring_core(meta, meta_path))
     return model, meta, norm
+
+
+POLICY_PREFIX = "policy:"
+"""How blf-eval names a registered policy where it names an agent's folder (``policy:nmpc``)."""
+
+
+def load_policy(name: str) -> tuple[Any, dict[str, Any], None]:
+    """(policy, metadata, None) for a policy registered in the ``blf_gym.policies`` entry points
+    (``blf_gym.registry.make_policy``), shaped as :func:`load_agent`'s answer so blf-eval scores it
+    as it scores an agent: the metadata names it, says plain mode and holds the policy's own
+    ``env_kwargs``; there are no normalization statistics. ``name`` may carry
+    :data:`POLICY_PREFIX`. The env it asks for is checked as an agent's is."""
+    from blf_gym.registry import make_policy
+
+    name = name[len(POLICY_PREFIX):] if name.startswith(POLICY_PREFIX) else name
+    policy = make_policy(name)
+    if (policy.env_kwargs.get("controller") or "none") != "none":
+        raise ValueError(f"policy {name!r}: its env_kwargs name the inner law "
+                         f"{policy.env_kwargs['controller']!r}; a registered policy acts in the plain env")
+    meta = {"name": name, "algo": POLICY_PREFIX + name, "mode": "plain",
+            "env_kwargs": json.loads(json.dumps(policy.env_kwargs)), "policy": name}
+    _scoring_core(meta, Path(f"{POLICY_PREFIX}{name}"))
+    return policy, meta, None
 
 
 def check_agent_folder(path: str | Path) -> None:

@@ -25,6 +25,7 @@ from typing import Sequence
 
 import numpy as np
 
+from blf_gym.io import help_text
 from blf_gym.params import PRESETS
 
 __all__ = ["main", "oracle_rmse"]
@@ -58,7 +59,7 @@ def oracle_rmse(scenarios, control_period: float = 0.01, oracle: bool = True,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agents.oracle", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m agents.oracle", description=help_text(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--control-periods", type=float, nargs="+", default=[0.01, 0.005, 0.002])
     p.add_argument("--suite-seeds", type=int, default=4, help="held-out randomized-suite episodes")

@@ -34,6 +34,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym.io import help_text
+
 __all__ = ["main", "pool_seeds", "seed_statistics"]
 
 BOOTSTRAP_REPS = 5000
@@ -205,7 +207,7 @@ def _markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m agents.report", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m agents.report", description=help_text(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("results", type=Path, help="results.json written by blf-eval --out")
     p.add_argument("--out", type=Path, default=None, metavar="MD",

@@ -61,7 +61,7 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from blf_gym.io import atomic_write_json, atomic_write_text
+from blf_gym.io import atomic_write_json, atomic_write_text, help_text
 from blf_gym.params import is_integer, is_real
 
 from .config import (CONFIG_KEYS, RunSpec, TrainConfig, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
@@ -908,7 +908,7 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-sweep", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="blf-sweep", description=help_text(__doc__.split("\n\n")[0]),
                                 epilog="See docs/sweeps.md for the sweep file, clusters and the scaling figures.",
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("sweep", type=Path, help="the sweep file (YAML; agents/configs/sweeps/ has examples)")

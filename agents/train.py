@@ -37,7 +37,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from blf_gym import ENV_IDS
-from blf_gym.io import atomic_write_json
+from blf_gym.io import atomic_write_json, help_text
 
 from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, curriculum_scale,
                      parse_overrides, shipped_config)
@@ -548,7 +548,7 @@ def train(
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-train", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="blf-train", description=help_text(__doc__.split("\n\n")[0]),
                                 formatter_class=argparse.RawDescriptionHelpFormatter,
                                 epilog="With --resume, the run's own algo, mode, controller, scenario, seed and "
                                        "config are used (an option that contradicts them is refused).")

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from blf_gym.io import atomic_write_text
+from blf_gym.io import atomic_write_text, help_text
 
 from .config import add_config_options, parse_overrides
 from .sweep import law_levels, main as sweep_main  # noqa: F401 - law_levels is re-exported
@@ -46,7 +46,7 @@ def sweep_file(configs: Sequence[Path], algo: str, mode: str, timesteps: int, se
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="blf-tune", description=__doc__,
+    p = argparse.ArgumentParser(prog="blf-tune", description=help_text(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("configs", nargs="+", type=Path, help="candidate blf-train config files (YAML)")
     p.add_argument("--algo", default="ppo", help="SB3 algorithm for every candidate (default ppo)")

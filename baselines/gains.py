@@ -35,7 +35,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import atomic_write_text
+from blf_gym.io import atomic_write_text, help_text
 from blf_gym.metrics import episode_stats, provenance, score_vs_law
 from blf_gym.params import preset
 from blf_gym.registry import available_controllers, make_controller
@@ -206,7 +206,7 @@ def _parse_grid(items: Sequence[str]) -> dict[str, list[float]]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m baselines.gains", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m baselines.gains", description=help_text(__doc__),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("controller", help="a registered controller (default: none, it must be given; with --filter, "
                                       "proposed)")

@@ -9,6 +9,10 @@ A command that writes a *set* of files (``blf-eval --out``) frames it with a man
 ``"complete": false``, and :func:`finish_output_set`, after every file is written, replaces that
 with ``"complete": true`` and each file's size and sha256. A set is complete only if its
 ``manifest.json`` says so and its files match (:func:`verify_output_set`).
+
+The commands' other shared helpers live here too: one-line messages for an OSError
+(:func:`os_error_message`), an output folder checked before a run (:func:`check_out_dir`), and a
+docstring made plain text for ``--help`` (:func:`help_text`).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import contextlib
 import hashlib
 import json
 import os
+import re
 import tempfile
 from pathlib import Path
 from typing import Any, Iterable, Iterator
@@ -189,3 +194,10 @@ def verify_output_set(out_dir: str | os.PathLike) -> str | None:
         if (size, sha) != (entry.get("bytes"), entry.get("sha256")):
             return f"{f} differs from what {path} records (changed since the set was written)"
     return None
+
+
+def help_text(doc: str | None) -> str:
+    """A docstring as a command's ``--help`` shows it: reStructuredText's inline literals
+    (````blf-train````) and roles (``:func:`x```, ``:data:`~a.b```) as plain text."""
+    text = re.sub(r":\w+:`~?([^`]+)`", r"\1", doc or "")
+    return re.sub(r"``([^`]+)``", r"\1", text)

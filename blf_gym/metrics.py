@@ -51,8 +51,11 @@ RECORD_FIELDS = (
 )
 PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
 PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds",
-                     "observer", "law_reused")
-"""Optional per-record fields saying what produced it (the CSV carries them as JSON text)."""
+                     "observer", "law_reused", "registered_policy", "policy_report")
+"""Optional per-record fields saying what produced it (the CSV carries them as JSON text).
+``registered_policy`` names a ``blf_gym.policies`` entry point scored like an agent, and
+``policy_report`` is that policy's own account of the run (the NMPC's solve times and fallbacks,
+over all of its episodes in the run)."""
 PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
              "torque_rms", "torque_peak", "saturated_fraction")
 KINDS = ("baseline", "plain", "residual")

@@ -245,3 +245,24 @@ def test_help_describes_the_manifest():
     import agents.evaluate as ev
 
     assert "manifest.json" in text and "complete" in text and "manifest.json" in ev.__doc__
+
+
+def test_the_table_keeps_its_columns_aligned_for_long_names_and_large_errors(tmp_path, capsys):
+    """A long agent name, a varied label and five-digit RMSEs (a plain agent that turned the arm
+    over) widen their columns instead of pushing the others out of line; a diverged group says so
+    in its own column, which the legend explains."""
+    from agents.evaluate import TABLE_NAME_MAX, _table
+
+    out = tmp_path / "set"
+    assert eval_main([*TINY, "--out", str(out), "--no-plots"]) == 0
+    legend = capsys.readouterr().out
+    assert "div: yes when an episode's simulation diverged" in legend
+    rec = json.loads((out / "results.json").read_text())["records"][0]
+    wild = dict(rec, policy="ppo_lagrangian_curriculum_seed_0_of_three", scenario="paper-0.1hz+frequency=0.5",
+                rmse_deg=[2604.1, 11871.33, 0.5], diverged=True)
+    lines = _table([rec, wild]).splitlines()
+    bars = [[i for i, ch in enumerate(ln) if ch == "|"] for ln in (lines[0], *lines[2:])]
+    assert len({tuple(b) for b in bars}) == 1, lines  # every row's separators at the header's places
+    assert "11871.33" in lines[3] and lines[3].rstrip().endswith("yes") and lines[2].rstrip().endswith("-")
+    name = lines[3].split()[0]
+    assert len(name) == TABLE_NAME_MAX and name.startswith("ppo_lag") and name.endswith("three")

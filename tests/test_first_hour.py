@@ -230,6 +230,12 @@ def test_every_option_has_help_and_its_default_once(name):
             assert action.help.count("default") == 1, f"{name} {action.option_strings}: {action.help!r}"
 
 
+@pytest.mark.parametrize("name", ["blf-train", "blf-eval", "blf-tune", "blf-reproduce", "blf-curves", "blf-sweep"])
+def test_help_is_plain_text_not_restructuredtext(name):
+    text = _parsers()[name].format_help()
+    assert "``" not in text and ":func:`" not in text and ":data:`" not in text, name
+
+
 def test_blf_curves_writes_into_the_run_folder_by_default(tmp_path, capsys):
     from agents.curves import main as curves_main
 

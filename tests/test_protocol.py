@@ -208,6 +208,17 @@ def test_the_stress_suite_is_an_env_scenario_but_never_a_training_one(tmp_path, 
 
 # ---- 8. provenance ----------------------------------------------------------------------------
 
+def test_a_varied_label_names_its_variation_or_says_custom():
+    from agents.evaluate import build_scenarios, variation_label
+
+    groups = build_scenarios(["paper-0.1hz"], 0, {"frequency": 0.5}, 1.0)
+    assert groups[0][0] == "paper-0.1hz+frequency=0.5"
+    assert groups[0][1][0].reference.frequency == 0.5  # what the label says is what runs
+    assert variation_label({}) == ""
+    assert variation_label({"force": 20, "frequency": 0.5}) == "+force=20,frequency=0.5"
+    assert variation_label({"payload": 0.1, "force": 55, "frequency": 0.3, "angle_noise_std": 0.001}) == "+custom"
+
+
 def test_results_record_what_produced_them(tiny_run, tmp_path):
     from agents.evaluate import main as eval_main
 
@@ -218,7 +229,8 @@ def test_results_record_what_produced_them(tiny_run, tmp_path):
                       "--no-progress"]) == 0
     data = json.loads((out / "results.json").read_text())
     labels = {r["scenario"] for r in data["records"]}
-    assert labels == {"paper-0.1hz+custom", "stress+custom"}  # a varied group is never unlabelled
+    # a varied group is never unlabelled, and its label names the variation
+    assert labels == {"paper-0.1hz+payload=0.12", "stress+payload=0.12"}
     for r in data["records"]:
         assert r["scenario_kwargs"] == {"payload": 0.12}
         if r["scenario"].startswith("stress"):
