@@ -251,9 +251,9 @@ class RunSpec:
 
     def checked(self) -> "RunSpec":
         """This spec with the defaults filled in (``controller``), or ValueError naming the field
-        and its accepted values. The stress suite is refused: it is held out."""
+        and its accepted values. The held-out suites (stress, certificate) are refused."""
         from blf_gym.registry import available_controllers, available_observers
-        from blf_gym.scenarios import resolve_scenario
+        from blf_gym.scenarios import HELD_OUT_SUITES, resolve_scenario
 
         from .loading import available_algorithms
 
@@ -268,9 +268,10 @@ class RunSpec:
             raise ValueError(f"unknown controller {controller!r}; accepted: {available_controllers()}")
         if self.observer not in available_observers():
             raise ValueError(f"unknown observer {self.observer!r}; accepted: {available_observers()}")
-        if self.scenario == "stress":
-            raise ValueError("the stress suite is held out: no training, tuning, seed choice or early stopping "
-                             "may read it (blf-eval --suite stress scores on it); train on randomized or a preset")
+        if self.scenario in HELD_OUT_SUITES:
+            raise ValueError(f"the {self.scenario} suite is held out: no training, tuning, seed choice or early "
+                             f"stopping may read it (blf-eval --suite {self.scenario} scores on it); train on "
+                             "randomized or a preset")
         resolve_scenario(self.scenario)
         if not (is_integer(self.timesteps) and self.timesteps >= 1):
             raise ValueError(f"timesteps must be an integer >= 1, got {self.timesteps!r}")

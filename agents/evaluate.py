@@ -42,6 +42,7 @@ import json
 import os
 import re
 import sys
+import textwrap
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,7 +57,8 @@ from blf_gym.scenarios import SUITES, apply_variations, sample_suite
 
 from . import lawcache
 from .lawcache import law_key, load_law, store_law
-from .loading import POLICY_PREFIX, PRETRAINED, load_agent, load_policy, scoring_env_kwargs  # the one agent loader, re-exported here
+# the one agent loader, re-exported here
+from .loading import POLICY_PREFIX, PRETRAINED, load_agent, load_policy, scoring_env_kwargs
 
 __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes", "agent_episodes",
            "agent_group_episodes", "law_env_kwargs", "law_reference", "law_reference_groups",
@@ -75,11 +77,16 @@ EVAL_SEED_OFFSET = 10_000
 
 def suite_seed_offset(suite: str) -> int:
     """First scenario seed of a suite's evaluation episodes (``EVAL_SEED_OFFSET`` for the training
-    suite's held-out seeds, ``blf_gym.scenarios.STRESS_SEED_OFFSET`` for the stress suite)."""
+    suite's held-out seeds, ``blf_gym.scenarios.STRESS_SEED_OFFSET`` for the stress suite,
+    ``CERTIFICATE_SEED_OFFSET`` for the certificate suite)."""
     if suite == "stress":
         from blf_gym.scenarios import STRESS_SEED_OFFSET
 
         return STRESS_SEED_OFFSET
+    if suite == "certificate":
+        from blf_gym.scenarios import CERTIFICATE_SEED_OFFSET
+
+        return CERTIFICATE_SEED_OFFSET
     if suite == "randomized":
         return EVAL_SEED_OFFSET
     raise ValueError(f"unknown suite {suite!r}; accepted values: {list(SUITES)}")
@@ -513,8 +520,10 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
     p.add_argument("--suite", nargs="+", default=list(PROTOCOL_SEEDS), choices=SUITES, metavar="SUITE",
-                   help="suites to draw episodes from: randomized (the training suite's held-out seeds) and/or "
-                        "stress (held out, beyond the training ranges) (default: randomized stress)")
+                   help="suites to draw episodes from: randomized (the training suite's held-out seeds), stress "
+                        "(held out, beyond the training ranges) and certificate (held out: early forces, corners "
+                        "and uniform draws of the documented ranges, for the filters' certificate; not in the "
+                        "protocol) (default: randomized stress)")
     p.add_argument("--suite-seeds", type=int, nargs="+", default=None, metavar="N",
                    help="episodes per suite, one count for all or one per --suite; 0 for the presets alone "
                         "(default: the protocol's 20 randomized and 50 stress, or 20 per suite named)")
@@ -616,11 +625,70 @@ def _table(records: Sequence[dict[str, Any]]) -> str:
     return "\n".join(lines)
 
 
-def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[Path]:
-    """Tracking error with bounds per joint (as the paper's Figures 6 and 10), and torques.
+PLOT_STYLES = ("-", "-.", ":", (0, (5, 1, 1, 1, 1, 1)))
+"""Line styles the plots cycle through, one per policy with its colour, widest first: so policies
+whose curves overlap still show each other's (the bounds are black dashes)."""
 
-    Plain agents (the whole torque learned) get a column of their own: their errors are often
-    tens of degrees, and on a shared axis they would flatten the laws' and residuals' curves."""
+
+def _figure(sc: str, rows: list[tuple[dict[str, Any], Any]], kind: str) -> Any:
+    """One PNG's figure: each joint's tracking error with its bounds (``kind="error"``, as the
+    paper's Figures 6 and 10) or its torque, for the group's first episode of each policy. Plain
+    agents get a column of their own (their errors are often tens of degrees and would flatten the
+    others'; a registered policy, such as the NMPC, is drawn with the laws). Each policy has its own
+    colour, line style and width (:data:`PLOT_STYLES`), and the legend sits below the axes, where it
+    covers no curve or bound."""
+    import matplotlib.pyplot as plt
+
+    def learned_plain(r: dict[str, Any]) -> bool:  # a registered policy (the NMPC) is drawn with the laws
+        return r["kind"] == "plain" and not r.get("registered_policy")
+
+    extra = [w for w, k in (("residual agents", "residual"), ("policies", "policy")) if any(
+        (x[0]["kind"] == k) if k == "residual" else bool(x[0].get("registered_policy")) for x in rows)]
+    columns = [("laws" + "".join(f" and {w}" for w in extra), [x for x in rows if not learned_plain(x[0])]),
+               ("plain agents (own scale)", [x for x in rows if learned_plain(x[0])])]
+    columns = [c for c in columns if c[1]]
+    fig, axes = plt.subplots(3, len(columns), figsize=(9 if len(columns) == 1 else 14, 7.6), sharex=True,
+                             squeeze=False)
+    names = [r["policy"] for r, _ in rows]
+    for col, (title, members) in enumerate(columns):
+        plain = learned_plain(members[0][0])
+        for j in range(3):
+            ax = axes[j, col]
+            for r, tr in members:
+                i = names.index(r["policy"])
+                y = np.degrees(tr.e1[:, j]) if kind == "error" else tr.u[:, j]
+                ax.plot(tr.t, y, color=f"C{i % 10}", ls=PLOT_STYLES[i % len(PLOT_STYLES)],
+                        lw=max(0.8, 2.0 - 0.3 * i), label=r["policy"])
+            if kind == "error":
+                tr = members[0][1]
+                ax.plot(tr.t, np.degrees(tr.k_a[:, j]), "k--", lw=0.9, label="bounds")
+                ax.plot(tr.t, -np.degrees(tr.k_b[:, j]), "k--", lw=0.9)
+                if not plain:
+                    # zoom on the steady bounds (they start at 29-34 deg and decay to 1-2 deg)
+                    ax.set_ylim(-3 * np.degrees(tr.k_b[-1, j]), 3 * np.degrees(tr.k_a[-1, j]))
+                ax.set_ylabel(f"e1_{j + 1} (deg)")
+            else:
+                ax.set_ylabel(f"u_{j + 1} (N m)")
+            ax.grid(alpha=0.3)
+        axes[0, col].set_title(title, fontsize=9)
+        axes[-1, col].set_xlabel("t (s)")
+    labels: dict[str, Any] = {}
+    for ax in axes.flat:
+        for h, lab in zip(*ax.get_legend_handles_labels()):
+            labels.setdefault(lab, h)
+    fig.suptitle(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
+                 + ("" if rows[0][0]["episodes"] == 1 else f" (first of {rows[0][0]['episodes']} episodes)"),
+                 fontsize=11)
+    ncol = min(len(labels), 6)
+    fig.legend(list(labels.values()), list(labels), loc="lower center", ncol=ncol, fontsize=8, frameon=False)
+    rows_of_legend = -(-len(labels) // ncol)
+    fig.tight_layout(rect=(0, 0.03 + 0.035 * rows_of_legend, 1, 1))
+    return fig
+
+
+def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[Path]:
+    """The PNGs of a blf-eval run: per scenario group, ``error_<group>.png`` and
+    ``torque_<group>.png`` (:func:`_figure`)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -629,43 +697,12 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
     from blf_gym.io import atomic_path
 
     written = []
-    scenarios = sorted({r["scenario"] for r, _ in results})
-    for sc in scenarios:
+    for sc in sorted({r["scenario"] for r, _ in results}):
         rows = [(r, trajs[0]) for r, trajs in results if r["scenario"] == sc and trajs and trajs[0].n_samples]
         if not rows:
             continue
-        columns = [("laws" + (" and residual agents" if any(x[0]["kind"] == "residual" for x in rows) else ""),
-                    [x for x in rows if x[0]["kind"] != "plain"]),
-                   ("plain agents (own scale)", [x for x in rows if x[0]["kind"] == "plain"])]
-        columns = [c for c in columns if c[1]]
         for kind in ("error", "torque"):
-            fig, axes = plt.subplots(3, len(columns), figsize=(9 if len(columns) == 1 else 14, 7),
-                                     sharex=True, squeeze=False)
-            for col, (title, members) in enumerate(columns):
-                plain = members[0][0]["kind"] == "plain"
-                for j in range(3):
-                    ax = axes[j, col]
-                    for r, tr in members:
-                        y = np.degrees(tr.e1[:, j]) if kind == "error" else tr.u[:, j]
-                        ax.plot(tr.t, y, lw=0.8, label=r["policy"])
-                    if kind == "error":
-                        tr = members[0][1]
-                        ax.plot(tr.t, np.degrees(tr.k_a[:, j]), "k--", lw=0.8, label="bounds")
-                        ax.plot(tr.t, -np.degrees(tr.k_b[:, j]), "k--", lw=0.8)
-                        if not plain:
-                            # zoom on the steady bounds (they start at 29-34 deg and decay to 1-2 deg)
-                            ax.set_ylim(-3 * np.degrees(tr.k_b[-1, j]), 3 * np.degrees(tr.k_a[-1, j]))
-                        ax.set_ylabel(f"e1_{j + 1} (deg)")
-                    else:
-                        ax.set_ylabel(f"u_{j + 1} (N m)")
-                    ax.grid(alpha=0.3)
-                axes[0, col].legend(loc="upper right", fontsize=8, ncol=4)
-                axes[0, col].set_title(title, fontsize=9)
-                axes[-1, col].set_xlabel("t (s)")
-            fig.suptitle(f"{sc}: {'tracking error and its bounds' if kind == 'error' else 'commanded torque'}"
-                         + ("" if rows[0][0]["episodes"] == 1 else f" (first of {rows[0][0]['episodes']} episodes)"),
-                         fontsize=11)
-            fig.tight_layout()
+            fig = _figure(sc, rows, kind)
             path = out / f"{kind}_{sc}.png"
             with atomic_path(path) as tmp:
                 fig.savefig(tmp, dpi=110, format="png")
@@ -1177,16 +1214,17 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             bar.close()
     records = [r[2] for r in results]
     print(_table(records))
-    print("\nRMSE per joint, pooled over the group's episodes, in degrees; score: score_vs_law, the geometric mean over joints of "
-          "the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs (per "
-          "episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: "
-          "the worst joint's violating fraction; fail: share of episodes with a violation or divergence; "
-          "cert: certificate_broken, the share of episodes where the policy violates and the law alone, on "
-          "the same scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half "
-          "of the episodes; excess (largest distance beyond a bound) and margin (closest approach to a "
-          "bound, negative when beyond): worst joint, in degrees; 1st viol: earliest violation (s); "
-          "torques in N m per joint; div: yes when an episode's simulation diverged (results.json: diverged). "
-          f"Names longer than {TABLE_NAME_MAX} characters are shortened here, not in results.json.")
+    print("\n" + textwrap.fill(
+        "RMSE per joint, pooled over the group's episodes, in degrees; score: score_vs_law, the geometric mean "
+        "over joints of the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs "
+        "(per episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: the "
+        "worst joint's violating fraction; fail: share of episodes with a violation or divergence; cert: "
+        "certificate_broken, the share of episodes where the policy violates and the law alone, on the same "
+        "scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half of the episodes; "
+        "excess (largest distance beyond a bound) and margin (closest approach to a bound, negative when "
+        "beyond): worst joint, in degrees; 1st viol: earliest violation (s); torques in N m per joint; div: yes "
+        "when an episode's simulation diverged (results.json: diverged). Names longer than "
+        f"{TABLE_NAME_MAX} characters are shortened here, not in results.json.", 100))
     if args.out is not None:
         files = list(write_results(records, args.out, meta_out))
         written = [] if args.no_plots else _plots([(r[2], r[3]) for r in results], args.out)

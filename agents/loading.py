@@ -313,7 +313,10 @@ def load_policy(name: str) -> tuple[Any, dict[str, Any], None]:
     from blf_gym.registry import make_policy
 
     name = name[len(POLICY_PREFIX):] if name.startswith(POLICY_PREFIX) else name
-    policy = make_policy(name)
+    try:
+        policy = make_policy(name)
+    except ImportError as exc:  # an optional dependency (the NMPC's CasADi, from the mpc extra)
+        raise ValueError(f"policy {name!r}: {_one_line(exc)}") from None
     if (policy.env_kwargs.get("controller") or "none") != "none":
         raise ValueError(f"policy {name!r}: its env_kwargs name the inner law "
                          f"{policy.env_kwargs['controller']!r}; a registered policy acts in the plain env")

@@ -48,7 +48,7 @@ from typing import Any
 
 from numba import njit
 
-from blf_gym.blocks import ResidualFilter, coriolis_times, gravity, mass_solve, mass_times
+from blf_gym.blocks import ResidualFilter, mass_solve, mass_times, nominal_acceleration
 
 from .params import params_from
 
@@ -105,11 +105,7 @@ def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot
     hi = work[5 * n : 6 * n]
     rc = work[6 * n : 7 * n]
     # the acceleration the law's command asks for
-    coriolis_times(nominal, x2_hat, x2_hat, t1)
-    gravity(nominal, t2)
-    for i in range(n):
-        t1[i] = u_law[i] - t1[i] - t2[i]
-    mass_solve(nominal, t1, a_law)
+    nominal_acceleration(nominal, x2_hat, u_law, t1, t2, a_law)
     for i in range(n):
         a_law[i] += x3_hat[i]
     # the residual within the actuator box (untouched when already inside)

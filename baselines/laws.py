@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 
 from blf_gym.blocks import coriolis_times
+from blf_gym.bounds import log_rate
 
 __all__ = ["bc_output", "lesobc_output", "proposed_output", "barrier_term"]
 
@@ -57,12 +58,10 @@ def _backstepping(kind, y, v, x3_hat, q_d, qd_d, qdd_d, ka, kad, kadd, kb, kbd, 
     lam = 0.0
     lam_d = 0.0
     if kind == _PROPOSED:
-        ra = kad / ka
-        rb = kbd / kb
+        ra, ra_d = log_rate(ka, kad, kadd)
+        rb, rb_d = log_rate(kb, kbd, kbdd)
         lam = np.sqrt(ra * ra + rb * rb)
         if lam > 0.0:
-            ra_d = (kadd * ka - kad * kad) / (ka * ka)
-            rb_d = (kbdd * kb - kbd * kbd) / (kb * kb)
             lam_d = (ra * ra_d + rb * rb_d) / lam
     for i in range(n):
         k1 = K1[i] + lam

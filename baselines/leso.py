@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.blocks import coriolis_times, gravity, mass_solve, model_length, nominal_length, nominal_model_into
+from blf_gym.blocks import model_length, nominal_acceleration, nominal_length, nominal_model_into
 
 __all__ = ["leso_rhs", "leso_ode3", "LESO"]
 
@@ -27,14 +27,9 @@ def leso_rhs(y, u, x1_hat, x2_hat, x3_hat, k0, nominal, work, d_x1_hat, d_x2_hat
     n = y.shape[0]
     c = work[:n]
     g = work[n : 2 * n]
-    r = work[2 * n : 3 * n]
     acc = work[3 * n : 4 * n]
     # F(y, x2_hat) + M^-1 u = M^-1 (u - C(y, x2_hat) x2_hat - G(y))
-    coriolis_times(nominal, x2_hat, x2_hat, c)
-    gravity(nominal, g)
-    for i in range(n):
-        r[i] = u[i] - c[i] - g[i]
-    mass_solve(nominal, r, acc)
+    nominal_acceleration(nominal, x2_hat, u, c, g, acc)
     l1 = 3.0 * k0
     l2 = 3.0 * k0 * k0
     l3 = k0 * k0 * k0

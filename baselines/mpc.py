@@ -32,12 +32,14 @@ The output constraints are soft with an exact (L1) penalty, so the problem is al
 every violation is still counted by the benchmark. IPOPT solves it with the Gauss-Newton Hessian
 (the cost is quadratic in the unknowns; the dynamics' curvature is left out), warm-started from the
 previous solution (primal and dual) shifted by one interval; the problem's functions are compiled to C once
-and kept in the cache (``BLF_GYM_CACHE_DIR``, by default ``~/.cache/blf-gym``), so later processes
+and kept in blf-gym's cache folder (:func:`blf_gym.io.cache_dir`, ``nmpc/``), so later processes
 load them in a fraction of a second.
 
 A solve that IPOPT does not report as converged is a **failure**: the policy then applies the next
 torque of its last converged plan while that plan lasts, and otherwise a computed-torque law on the
-same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`).
+same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`). An
+estimator whose state is no longer finite (an arm that spun far from its model) starts again at the
+measured angle, and that restart is counted too.
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ from blf_gym.observation import (
     observation_index,
     unsquash,
 )
+from blf_gym.io import cache_dir
 from blf_gym.params import ArmParams, FrictionParams
 
 __all__ = ["NMPCParams", "casadi_dynamics", "NMPC", "NMPCPolicy", "nmpc"]
@@ -184,10 +187,6 @@ def _friction(ca: Any, friction: FrictionParams | None, qd: Any) -> Any:
     return friction.viscous * qd + friction.coulomb * ca.tanh(friction.tanh_slope * qd)
 
 
-def _cache_dir() -> Path:
-    return Path(os.environ.get("BLF_GYM_CACHE_DIR") or Path.home() / ".cache" / "blf-gym") / "nmpc"
-
-
 class NMPC:
     """The optimal control problem of the module docstring, one compiled CasADi Function shared by
     every arm; each arm's warm start is a value the caller keeps (:meth:`solve`)."""
@@ -249,7 +248,7 @@ class NMPC:
         import shutil
 
         compiled = compiled and (shutil.which("gcc") or shutil.which("cc")) is not None
-        path = _cache_dir() / f"{self._key(compiled)}.casadi"
+        path = cache_dir() / "nmpc" / f"{self._key(compiled)}.casadi"
         if path.is_file():
             try:
                 fn = ca.Function.load(str(path))
@@ -397,16 +396,22 @@ def _estimate(nmpc: NMPC, arm: _Arm, y: np.ndarray, u_last: np.ndarray) -> np.nd
     return arm.z
 
 
-def _act(nmpc: NMPC, arm: _Arm, y, qref, qdref, ka, kb, u_last, qdd_now) -> tuple[np.ndarray, float, bool, str]:
-    """One sample of one arm: (torque, solve time in s, whether the fallback acted, IPOPT's status)."""
+def _act(nmpc: NMPC, arm: _Arm, y, qref, qdref, ka, kb, u_last,
+         qdd_now) -> tuple[np.ndarray, float, bool, str, bool]:
+    """One sample of one arm: (torque, solve time in s, whether the fallback acted, IPOPT's status,
+    whether the estimator was restarted because its state was no longer finite)."""
     t0 = time.perf_counter()
     z = _estimate(nmpc, arm, y, u_last)
+    restarted = not np.all(np.isfinite(z))
+    if restarted:  # the filter diverged (an arm spun far from its model): start it afresh at y
+        arm.z, arm.cov, arm.warm, arm.plan = None, None, None, None
+        z = _estimate(nmpc, arm, y, u_last)
     x0, d = z[: 2 * nmpc.n], z[2 * nmpc.n:]
     plan, facts, warm = nmpc.solve(x0, d, qref, qdref, ka, kb, u_last, arm.warm)
     wall = time.perf_counter() - t0
     if facts["success"]:
         arm.warm, arm.plan, arm.age = warm, plan, 0
-        return plan[:, 0].copy(), wall, False, facts["status"]
+        return plan[:, 0].copy(), wall, False, facts["status"], restarted
     arm.age += 1
     if arm.plan is not None and arm.age < arm.plan.shape[1]:
         u = arm.plan[:, arm.age].copy()  # the last converged plan, one more interval on
@@ -417,7 +422,7 @@ def _act(nmpc: NMPC, arm: _Arm, y, qref, qdref, ka, kb, u_last, qdd_now) -> tupl
         a = qdd_now - d + p.fallback_kp * (qref[:, 0] - q) + p.fallback_kd * (qdref[:, 0] - qd)
         u = np.clip(np.asarray(nmpc.inverse(q, qd, a)).ravel(), -nmpc.u_max, nmpc.u_max)
         arm.warm = None
-    return u, wall, True, facts["status"]
+    return u, wall, True, facts["status"], restarted
 
 
 def _worker(conn: Any, params: NMPCParams, u_max: float, compiled: bool) -> None:
@@ -471,6 +476,7 @@ class NMPCPolicy:
         self._pool: list[Any] = []
         self._times: list[float] = []
         self._fallbacks = 0
+        self._restarts = 0
         self._statuses: dict[str, int] = {}
         if env is not None:
             self.check_env(env)
@@ -578,19 +584,22 @@ class NMPCPolicy:
                     self._arms[i] = _Arm()
                 results.append(_act(self.nmpc, self._arms[i], *args[i]))
         u = np.empty((rows, self.nmpc.n))
-        for i, (ui, wall, fell_back, status) in enumerate(results):
+        for i, (ui, wall, fell_back, status, restarted) in enumerate(results):
             u[i] = ui
             self._times.append(wall)
             self._fallbacks += int(fell_back)
+            self._restarts += int(restarted)
             self._statuses[status] = self._statuses.get(status, 0) + 1
         actions = np.clip(u / self.max_torque, -1.0, 1.0).astype(np.float32)
         return (actions[0] if single else actions), state
 
     def report(self) -> dict[str, Any]:
-        """The solves so far: count, fallbacks (failed solves), IPOPT's statuses, and the solve time
+        """The solves so far: count, fallbacks (failed solves), estimator restarts (its state was no
+        longer finite, so it started again at the measured angle), IPOPT's statuses, and the solve time
         per sample in ms (median, 99th percentile, largest)."""
         t = np.array(self._times) * 1e3
-        return {"solves": int(t.size), "fallbacks": self._fallbacks, "statuses": dict(self._statuses),
+        return {"solves": int(t.size), "fallbacks": self._fallbacks, "estimator_restarts": self._restarts,
+                "statuses": dict(self._statuses),
                 "solve_ms_median": float(np.median(t)) if t.size else None,
                 "solve_ms_p99": float(np.percentile(t, 99)) if t.size else None,
                 "solve_ms_max": float(t.max()) if t.size else None,

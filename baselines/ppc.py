@@ -32,6 +32,7 @@ from typing import Any
 from numba import njit
 
 from blf_gym.blocks import Controller, coriolis_times
+from blf_gym.bounds import log_rate
 
 from .controllers import controller_gains
 
@@ -55,10 +56,8 @@ def ppc_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b,
     ca = work[2 * n : 3 * n]
     reps = work[3 * n : 4 * n]
     # the rates of ln k_a and ln k_b and their derivatives (the e-free part of s)
-    la = k_a_dot / k_a
-    lb = k_b_dot / k_b
-    la_d = (k_a_ddot * k_a - k_a_dot * k_a_dot) / (k_a * k_a)
-    lb_d = (k_b_ddot * k_b - k_b_dot * k_b_dot) / (k_b * k_b)
+    la, la_d = log_rate(k_a, k_a_dot, k_a_ddot)
+    lb, lb_d = log_rate(k_b, k_b_dot, k_b_ddot)
     for i in range(n):
         e_raw = y[i] - q_d[i]
         e = min(max(e_raw, -barrier_clip * k_b), barrier_clip * k_a)

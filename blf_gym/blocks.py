@@ -85,7 +85,7 @@ from .reference import REFERENCE_SIGNALS
 
 __all__ = [
     "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "ResidualFilter", "Connection", "connect", "mass_times",
-    "mass_solve", "coriolis_times", "gravity", "nominal_length", "work_length", "units",
+    "mass_solve", "coriolis_times", "gravity", "nominal_acceleration", "nominal_length", "work_length", "units",
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -171,6 +171,19 @@ def gravity(nominal, out):
     n = out.shape[0]
     for i in range(n):
         out[i] = nominal[n * n + i]
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def nominal_acceleration(nominal, v, u, c, g, out):
+    """out = M(y)^-1 (u - C(y, v) v - G(y)): the nominal arm's acceleration at the measured angles,
+    velocity ``v`` and torque ``u`` (the LESO's model and the CBF filter's law acceleration); ``c``
+    and ``g`` are scratch of n entries (they end holding u - C v - G and G)."""
+    n = out.shape[0]
+    coriolis_times(nominal, v, v, c)
+    gravity(nominal, g)
+    for i in range(n):
+        c[i] = u[i] - c[i] - g[i]
+    mass_solve(nominal, c, out)
 
 
 # ---------------------------------------------------------------------------------------------

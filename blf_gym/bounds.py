@@ -14,7 +14,7 @@ from . import vmath
 
 from .params import BOUNDS_PACK, BoundParams
 
-__all__ = ["bounds_into", "bounds_exponent", "bounds_from", "error_bounds", "BOUND_SIGNALS", "BOUND_LEN"]
+__all__ = ["bounds_into", "bounds_exponent", "bounds_from", "error_bounds", "log_rate", "BOUND_SIGNALS", "BOUND_LEN"]
 
 BOUND_SIGNALS = ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot", "k_b_ddot")
 """The vector written by :func:`bounds_into`, declared once (these are also the plug-in signals'
@@ -33,6 +33,13 @@ def bounds_into(t, bp, out):
     ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.params.BOUNDS_PACK`.
     """
     bounds_from(vmath.exp(bounds_exponent(t, bp)), bp, out)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def log_rate(k, k_dot, k_ddot):
+    """``(k'/k, d/dt (k'/k))`` of a bound k > 0: the rate of ln k and its derivative (the proposed
+    law's ra, rb and their rates; prescribed-performance control's e-free terms)."""
+    return k_dot / k, (k_ddot * k - k_dot * k_dot) / (k * k)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -325,7 +325,9 @@ def provenance(command: str | None = None, **extra: Any) -> dict[str, Any]:
     import subprocess
 
     versions = {"python": platform.python_version()}
-    for pkg in ("blf-gym", "numpy", "numba", "gymnasium", "stable-baselines3", "torch", "sb3-contrib"):
+    # the optional ones when installed: sb3-contrib (TQC), sbx-rl and jax (the sbx learners), casadi (the NMPC)
+    for pkg in ("blf-gym", "numpy", "numba", "gymnasium", "stable-baselines3", "torch", "sb3-contrib", "sbx-rl", "jax",
+                "casadi"):
         try:
             versions[pkg] = md.version(pkg)
         except md.PackageNotFoundError:

@@ -58,8 +58,11 @@ class ArmRenderer:
         ax.plot(r.center[0] + r.radius * np.cos(th), r.center[1] + r.radius * np.sin(th), "--",
                 color="0.6", lw=1, label="reference")
         p = np.array(path)
-        ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=1, label="end effector")
+        # the path so far (empty on an episode's first frame) and the end effector itself, on top
+        # of the arm, so the legend's blue is on every frame
+        ax.plot(p[:, 0], p[:, 1], color="tab:blue", lw=1.5, zorder=3)
         ax.plot(pts[:, 0], pts[:, 1], "-o", color="k", lw=3, ms=4)
+        ax.plot(pts[-1, 0], pts[-1, 1], "o", color="tab:blue", ms=7, zorder=4, label="end effector and its path")
         t = float(core.loop.time[i])
         ax.plot(r.center[0] + r.radius * np.cos(2 * np.pi * r.frequency * t),
                 r.center[1] + r.radius * np.sin(2 * np.pi * r.frequency * t), "x", color="tab:red")

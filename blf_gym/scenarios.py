@@ -29,6 +29,15 @@ suite never produces. Its evaluation episodes use seeds from :data:`STRESS_SEED_
 not guaranteed there: it breaks the bounds in some stress episodes (fast references with high
 friction, heavy payloads), and that is reported, not hidden.
 
+The **certificate suite** (``"certificate"``) is held out like the stress suite, and drawn for one
+question only: does a filtered residual break a bound that the law alone keeps where the filter's
+assumptions fail? Each episode is one of three kinds, chosen by its generator: two in five are an
+**early force** (onset uniform in 0-4 s, 40-60 N, the reference at 0.1-0.5 Hz, every other knob at
+the preset's value); three in ten a **corner** of :data:`SAFE_RANGES` (every knob at one end of
+its documented range, each end with probability 1/2, each joint's initial error on its own); and
+three in ten a **uniform** draw over :data:`SAFE_RANGES`. Its episodes use seeds from
+:data:`CERTIFICATE_SEED_OFFSET`. No suite the agents train or are selected on contains them.
+
 **Random streams.** The first eight knobs (:data:`SHARED_KNOBS`) draw from the suite's generator
 itself, in table order, then the stress suite picks among those eight which to push: the episodes
 every result so far was scored on. A knob added after them names a stream of its own
@@ -49,7 +58,7 @@ import numpy as np
 from .params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
 
 __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
-           "STRESS_SEED_OFFSET", "UNITS", "apply_variations", "check_variations", "sample_suite",
+           "STRESS_SEED_OFFSET", "CERTIFICATE_SEED_OFFSET", "CERTIFICATE_KINDS", "HELD_OUT_SUITES", "UNITS", "apply_variations", "check_variations", "sample_suite",
            "outside_training", "resolve_scenario", "SUITES", "widen_bounds"]
 
 
@@ -190,7 +199,16 @@ STRESS_SEED_OFFSET = 20_000
 """The stress suite's evaluation episodes use scenario seeds from here (the training suite's
 held-out ones start at 10,000)."""
 
-SUITES = ("randomized", "stress")
+CERTIFICATE_SEED_OFFSET = 30_000
+"""The certificate suite's episodes use scenario seeds from here."""
+
+SUITES = ("randomized", "stress", "certificate")
+
+HELD_OUT_SUITES = ("stress", "certificate")
+"""Suites no training, tuning, seed choice, early stopping or sweep objective may read."""
+
+CERTIFICATE_KINDS = (("early force", 0.4), ("corner", 0.3), ("uniform", 0.3))
+"""The certificate suite's episode kinds and their probabilities (see the module docstring)."""
 
 
 def _knob_table() -> str:
@@ -335,10 +353,29 @@ def _push(rng: np.random.Generator, knob: Knob, draws: dict[str, Any], base: Sce
         draws[knob.name] = _outside(rng, knob, draws["frequency"], base.sim.duration)
 
 
+def _certificate_case(rng: np.random.Generator, n: int) -> dict[str, Any]:
+    """The knobs of one certificate-suite episode (the module docstring), from ``rng`` alone (it
+    has already drawn the training suite's values, which this discards)."""
+    u = rng.uniform()
+    if u < CERTIFICATE_KINDS[0][1]:  # an early force on a reference of the training suite's speeds
+        return {"force_onset": float(rng.uniform(0.0, 4.0)), "force": float(rng.uniform(40.0, 60.0)),
+                "frequency": float(rng.uniform(0.1, 0.5))}
+    corner = u < CERTIFICATE_KINDS[0][1] + CERTIFICATE_KINDS[1][1]
+    draws: dict[str, Any] = {}
+    for k in KNOBS:
+        lo, hi = k.safe
+        if k.per_joint:
+            draws[k.name] = tuple(float(lo if rng.integers(2) == 0 else hi) if corner else float(rng.uniform(lo, hi))
+                                  for _ in range(n))
+        else:
+            draws[k.name] = float(lo if rng.integers(2) == 0 else hi) if corner else float(rng.uniform(lo, hi))
+    return draws
+
+
 def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: str = "randomized") -> Scenario:
     """Draw one scenario of the suite ``name`` from ``rng`` (the only source of randomness):
-    ``"randomized"``, the training suite, or ``"stress"``, the held-out stress suite (see the
-    module docstring)."""
+    ``"randomized"``, the training suite, ``"stress"``, the held-out stress suite, or
+    ``"certificate"``, the held-out cases of the filters' certificate (see the module docstring)."""
     if not (isinstance(name, str) and name in SUITES):
         raise ValueError(f"unknown suite {name!r}; accepted: {list(SUITES)}")
     base = base if base is not None else preset("paper-0.1hz")
@@ -349,6 +386,8 @@ def sample_suite(rng: np.random.Generator, base: Scenario | None = None, name: s
         draws[k.name] = _draw(own[k.name], k, n)
     if name == "randomized":
         return apply_variations(base, draws, name=name)
+    if name == "certificate":
+        return apply_variations(base, _certificate_case(rng, n), name=name)
     pushed = rng.choice(SHARED_KNOBS, size=int(rng.integers(1, 4)), replace=False)
     for i in sorted(int(i) for i in pushed):
         _push(rng, KNOBS[i], draws, base)

@@ -220,6 +220,25 @@ def test_plain_default_reward_at_0_1_ms_with_the_law_as_a_policy():
     assert term and zero <= -50.0 < ret
 
 
+@pytest.mark.slow
+def test_the_readmes_evaluate_policy_snippet_runs_without_warnings(capsys):
+    """The README's snippet, run as written: SB3's evaluate_policy on the law as a policy, wrapped
+    in a Monitor, gives no warning and returns the log score_vs_law of the sampled law (near 0)."""
+    import re
+    import warnings
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    m = re.search(r"<!-- snippet:evaluate-policy -->\s*```python\n(.*?)```", text, re.S)
+    assert m, "README.md has no evaluate-policy snippet"
+    scope: dict = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # SB3's Monitor warning, or any other, fails the snippet
+        exec(compile(m.group(1), "README.md", "exec"), scope)
+    assert abs(scope["mean_return"]) < 0.05
+    assert capsys.readouterr().out.startswith("return ")
+
+
 def test_a_score_weight_needs_a_violation_penalty_that_makes_violations_lose():
     from blf_gym.reward import PHI_CAP, SCORE_REWARD, RewardWeights
 

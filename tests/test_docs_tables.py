@@ -17,7 +17,8 @@ def _module(path: Path):
     return mod
 
 
-@pytest.mark.parametrize("name, fn", [("protocol.md", "protocol_table"), ("filters.md", "filters_table")])
+@pytest.mark.parametrize("name, fn", [("protocol.md", "protocol_table"), ("filters.md", "filters_table"),
+                                      ("nmpc.md", "nmpc_table")])
 def test_the_control_tables_are_written_by_their_command(name, fn):
     tables = _module(ROOT / "docs" / "control" / "tables.py")
     assert (ROOT / "docs" / "control" / name).read_text() == getattr(tables, fn)(), \

@@ -643,6 +643,27 @@ def test_render_rgb_array_returns_a_picture():
     env.close()
 
 
+def test_the_first_frame_shows_the_end_effector_its_legend_names():
+    """The legend names a blue end effector; on an episode's first frame (no path yet) the pixel at
+    the end effector's position is that blue, not the arm's black or the background."""
+    from matplotlib.colors import to_rgb
+
+    from blf_gym.dynamics import joint_positions
+
+    env = gym.make("PlanarBLF-v0", render_mode="rgb_array")
+    env.reset(seed=0)
+    frame = env.render().astype(float)
+    u = env.unwrapped
+    ax = u._renderer.ax_arm
+    assert "end effector" in [t.get_text() for t in ax.get_legend().get_texts()][1]
+    x, y = ax.transData.transform(joint_positions(u.core.loop.X[0, :3], u.scenario.arm)[-1])
+    row, col = int(round(frame.shape[0] - y)), int(round(x))
+    patch = frame[row - 1:row + 2, col - 1:col + 2].reshape(-1, 3)
+    blue = np.array(to_rgb("tab:blue")) * 255
+    assert np.abs(patch - blue).max(axis=1).min() < 30, patch
+    env.close()
+
+
 # --------------------------------------------------------------------------------------------
 # 13. truncation
 

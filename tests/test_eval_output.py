@@ -255,7 +255,7 @@ def test_the_table_keeps_its_columns_aligned_for_long_names_and_large_errors(tmp
 
     out = tmp_path / "set"
     assert eval_main([*TINY, "--out", str(out), "--no-plots"]) == 0
-    legend = capsys.readouterr().out
+    legend = " ".join(capsys.readouterr().out.split())
     assert "div: yes when an episode's simulation diverged" in legend
     rec = json.loads((out / "results.json").read_text())["records"][0]
     wild = dict(rec, policy="ppo_lagrangian_curriculum_seed_0_of_three", scenario="paper-0.1hz+frequency=0.5",
@@ -266,3 +266,32 @@ def test_the_table_keeps_its_columns_aligned_for_long_names_and_large_errors(tmp
     assert "11871.33" in lines[3] and lines[3].rstrip().endswith("yes") and lines[2].rstrip().endswith("-")
     name = lines[3].split()[0]
     assert len(name) == TABLE_NAME_MAX and name.startswith("ppo_lag") and name.endswith("three")
+
+
+def test_the_plots_legend_covers_no_axes_and_overlapping_policies_differ():
+    """The legend sits outside every axes (it used to cover joint 1's upper bound), and two
+    policies with the same curve are drawn in different colours, styles and widths, so the one
+    underneath still shows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from types import SimpleNamespace
+
+    from agents.evaluate import _figure
+
+    t = np.linspace(0.0, 1.0, 101)
+    e1 = np.radians(np.outer(np.sin(6 * t), [1.0, 0.5, 0.2]))
+    bound = np.radians(np.full((101, 3), 2.0))
+    tr = SimpleNamespace(t=t, e1=e1, k_a=bound, k_b=bound, u=np.outer(t, [1.0, 2.0, 3.0]), n_samples=101)
+    rows = [({"policy": name, "kind": "baseline", "episodes": 1}, tr) for name in ("proposed", "ppc", "funnel")]
+    fig = _figure("paper-0.1hz", rows, "error")
+    fig.canvas.draw()
+    legend = fig.legends[0].get_window_extent()
+    for ax in fig.axes:
+        assert not legend.overlaps(ax.get_window_extent()), ax.get_ylabel()
+    lines = [ln for ln in fig.axes[0].get_lines() if ln.get_label() in ("proposed", "ppc", "funnel")]
+    assert len({(ln.get_color(), str(ln.get_linestyle()), ln.get_linewidth()) for ln in lines}) == 3
+    assert lines[0].get_linewidth() > lines[-1].get_linewidth()  # the first drawn is the widest
+    plt.close(fig)

@@ -189,6 +189,24 @@ def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
     assert np.all(np.isfinite(errs)) and np.abs(errs).max() < 0.2  # the computed-torque fallback holds it
 
 
+def test_a_diverged_estimator_restarts_at_the_measured_angle_and_is_counted():
+    """A filter state that is no longer finite (the stress suite produced one) must not reach the
+    torque: the arm's estimator starts again at y, the action is finite, and the restart counted."""
+    pol = NMPCPolicy(NMPCParams(horizon=10, **_NO_FRICTION), compiled=False, workers=0)
+    env = gym.make("PlanarBLF-v0", scenario=_nominal(wide=True, duration=0.2), **pol.env_kwargs)
+    pol.check_env(env)
+    obs, _ = env.reset(seed=0)
+    a, _ = pol.predict(obs[None])
+    obs, *_ = env.step(a[0])
+    pol._arms[0].z[:] = np.nan  # what a diverged filter leaves
+    a, _ = pol.predict(obs[None])
+    assert np.all(np.isfinite(a)) and pol.report()["estimator_restarts"] == 1
+    y = obs[pol._index["y"]]
+    np.testing.assert_allclose(pol._arms[0].z[:3], y, atol=1e-6)  # it restarted at the measured angle
+    a, _ = pol.predict(env.step(a[0])[0][None])
+    assert np.all(np.isfinite(a)) and pol.report()["estimator_restarts"] == 1
+
+
 def test_the_registered_policy_runs_under_evaluate_policy():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy

@@ -9,6 +9,9 @@
   from ``docs/filters_plain/<filter>/results.json``, written by ``blf-eval --agents
   agents/pretrained/ppo_plain agents/pretrained/ppo_plain_searched agents/pretrained/ppo_lagrangian
   --residual-filter <filter> --jobs 1 --out docs/filters_plain/<filter>`` for none, barrier and cbf.
+* ``nmpc.md``: the NMPC beside the proposed law on the protocol, with its solver's account (solve
+  time per 10 ms sample, fallbacks), from ``docs/nmpc/results.json``, written by
+  ``docs/nmpc/run.sh``.
 """
 
 from __future__ import annotations
@@ -67,12 +70,33 @@ def filters_table() -> str:
             + "; ".join(cmds) + ").\n\n" + HEAD + "\n" + "\n".join(row for *_, row in lines) + "\n")
 
 
+def nmpc_table() -> str:
+    recs, cmd = _records(DOCS / "nmpc" / "results.json")
+    order = {g: i for i, g in enumerate(GROUPS)}
+    recs = sorted(recs, key=lambda r: (order.get(r["scenario"], 9), r["policy"]))
+    rep = next((r["policy_report"] for r in recs if r.get("policy_report")), None)
+    solver = "" if rep is None else (
+        f" The NMPC's solver over all {rep['solves']:,} samples of the run: median {rep['solve_ms_median']:.1f} ms, "
+        f"99th percentile {rep['solve_ms_p99']:.1f} ms, largest {rep['solve_ms_max']:.0f} ms per 10 ms sample "
+        f"(the estimator included); {rep['fallbacks']:,} fallbacks; IPOPT's statuses "
+        + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
+    return (f"Written by `python docs/control/tables.py` from `docs/nmpc/results.json` (`{cmd}`, "
+            "docs/nmpc/run.sh). Wall time per episode: the group's share of the batches' wall time over its "
+            "episodes, the NMPC's two solver processes on this 2-core machine, alone on it." + solver + "\n\n"
+            + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
+
+
 def main() -> None:
     out = DOCS / "control"
+    written = [out / "protocol.md"]
     (out / "protocol.md").write_text(protocol_table())
     if (DOCS / "filters_plain").is_dir():
         (out / "filters.md").write_text(filters_table())
-    print(f"wrote {out / 'protocol.md'}" + (f" and {out / 'filters.md'}" if (DOCS / "filters_plain").is_dir() else ""))
+        written.append(out / "filters.md")
+    if (DOCS / "nmpc" / "results.json").is_file():
+        (out / "nmpc.md").write_text(nmpc_table())
+        written.append(out / "nmpc.md")
+    print("wrote " + ", ".join(str(p) for p in written))
 
 
 if __name__ == "__main__":

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from blf_gym.blocks import Observer, coriolis_times, gravity, mass_solve
+from blf_gym.blocks import Observer, nominal_acceleration
 
 __all__ = ["ESO4Gains", "eso4"]
 
@@ -26,13 +26,8 @@ def rhs(y, u, x1_hat, x2_hat, x3_hat, x4_hat, k0, nominal, work, d_x1_hat, d_x2_
     n = y.shape[0]
     c = work[:n]
     g = work[n : 2 * n]
-    r = work[2 * n : 3 * n]
     acc = work[3 * n : 4 * n]
-    coriolis_times(nominal, x2_hat, x2_hat, c)
-    gravity(nominal, g)
-    for i in range(n):
-        r[i] = u[i] - c[i] - g[i]
-    mass_solve(nominal, r, acc)
+    nominal_acceleration(nominal, x2_hat, u, c, g, acc)  # M^-1 (u - C(y, x2_hat) x2_hat - G(y))
     for i in range(n):
         err = y[i] - x1_hat[i]
         d_x1_hat[i] = x2_hat[i] + 4.0 * k0 * err
