@@ -225,7 +225,7 @@ def _run(args: argparse.Namespace) -> int:
     duration = args.duration if args.duration is not None else preset(args.preset[0]).sim.duration
     print(f"\nRMSE in degrees over the 1 ms samples of each {duration:g} s run (up to the divergence "
           f"for a diverged one); paper values from Tables 3-4 of Tran et al. (2020), whose 1 ms step diverges on this "
-          f"plant (see README). Wall time {time.perf_counter() - t0:.2f} s.")
+          f"plant (docs/reproduction.md). Wall time {time.perf_counter() - t0:.2f} s.")
     # one warning per distinct failure (same code and time), naming the cases it covers
     diverged: dict[tuple, list[tuple[str, str]]] = {}
     for rec, tr in results:

@@ -9,7 +9,8 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .envcore import CORE_BOUND_SCALE, EnvCore, check_env_kwargs, observation_layout, warn_if_oversubscribed
+from .envcore import (ARGUMENTS, CORE_BOUND_SCALE, INFO_KEYS, EnvCore, check_env_kwargs, observation_layout,
+                      warn_if_oversubscribed)
 from .params import Scenario, check_int
 
 __all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_residual_controller"]
@@ -20,12 +21,47 @@ __all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_re
 MAX_FPS = 100.0
 
 
-def _obs_table(privileged: bool) -> str:
-    rows = observation_layout(3, privileged)
-    lines = ["    | index | observation | unit | min | max |", "    |---|---|---|---|---|"]
-    for i, (name, unit, lo, hi) in enumerate(rows):
-        lines.append(f"    | {i} | {name} | {unit} | {lo:g} | {hi:g} |")
-    return "\n".join(lines)
+def _rows(header: tuple[str, ...], rows: list[tuple[Any, ...]], indent: str = "") -> str:
+    """A Markdown table."""
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c).replace("|", "\\|") for c in r) + " |" for r in rows]
+    return "\n".join(indent + line for line in out)
+
+
+def observation_table(privileged: bool = True, indent: str = "") -> str:
+    """The default observation's entries (index, name, unit, box), a Markdown table made from
+    :data:`blf_gym.observation.OBSERVATION` for the 3-link arm."""
+    rows = [(i, name, unit, f"{lo:g}", f"{hi:g}") for i, (name, unit, lo, hi)
+            in enumerate(observation_layout(3, privileged))]
+    return _rows(("index", "observation", "unit", "min", "max"), rows, indent)
+
+
+def _default_text(v: Any) -> str:
+    return "()" if v == () else repr(v)
+
+
+def arguments_table(indent: str = "") -> str:
+    """The env's keyword arguments (default, unit, accepted values, meaning), a Markdown table
+    made from :data:`blf_gym.envcore.ARGUMENTS` and :class:`~blf_gym.envcore.EnvCore`'s defaults."""
+    d = _defaults()
+    rows = [(f"`{a.name}`", f"`{_default_text(d[a.name])}`", a.unit, a.accepted, a.meaning) for a in ARGUMENTS]
+    return _rows(("argument", "default", "unit", "accepted", "meaning"), rows, indent)
+
+
+def info_table(indent: str = "") -> str:
+    """The env's ``info`` keys (unit, when present, meaning), a Markdown table made from
+    :data:`blf_gym.envcore.INFO_KEYS`."""
+    rows = [(f"`{k.name}`", k.unit, k.when, k.meaning) for k in INFO_KEYS]
+    return _rows(("key", "unit", "present", "meaning"), rows, indent)
+
+
+def reward_terms_table(indent: str = "") -> str:
+    """The shaped reward's per-sample terms (default weight, unit, meaning), a Markdown table made
+    from :data:`blf_gym.reward.TERMS`."""
+    from .reward import TERMS
+
+    rows = [(f"`{t.name}`", f"{t.weight:g}", t.unit, t.meaning.replace("``", "`")) for t in TERMS]
+    return _rows(("term", "default weight", "unit", "per 1 ms sample, summed over the joints"), rows, indent)
 
 
 def _defaults() -> dict[str, Any]:
@@ -117,7 +153,7 @@ class PlanarBLFEnv(gym.Env):
     ``Box(low, high, (31,), float32)`` (37 with ``privileged=True``). Unbounded quantities are
     squashed as c tanh(x / c) so every observation lies inside the box:
 
-{_obs_table(True)}
+{observation_table(True, '    ')}
 
     Entries 31-36 exist only with ``privileged=True``. The measured angles include the optional
     noise (``angle_noise_std``, a fresh draw for the observation).
@@ -140,16 +176,8 @@ class PlanarBLFEnv(gym.Env):
 {_truncation_text()}
 
     ## Info
-    ``time`` (s), ``e1`` (rad), ``k_a``, ``k_b`` (rad), ``g_upper = e1 - k_a`` and
-    ``g_lower = -k_b - e1`` (constraint margins, <= 0 is safe), ``cost`` (1.0 if any integration
-    step of this agent step broke a bound), ``violating_samples`` (1 ms samples), ``u``,
-    ``u_law`` (at the start of the step's last integration step), ``u_residual`` (N m),
-    ``saturated`` (the actuator limit clipped at some step), ``x3`` and ``x3_hat`` (true and
-    estimated lumped disturbance against the nominal model, rad/s^2, both at the step's last 1 ms
-    sample, t_end - 1 ms), ``controller_outputs`` (the inner law's published outputs besides u_law,
-    by name, at the start of the step's last integration step: the proposed law's ``z1`` rad,
-    ``z2_hat`` rad/s and ``barrier`` 1/rad), ``termination_reason``, ``truncation_reason``,
-    ``reward_info``.
+{info_table('    ')}
+
     The privileged observation's true x3 is that same sample's.
 
     ## Arguments
@@ -161,22 +189,9 @@ class PlanarBLFEnv(gym.Env):
     env = gym.make("PlanarBLF-v0", scenario="randomized")          # the randomized suite
     obs, info = env.reset(seed=0, options={{"payload": 0.15}})       # per-episode variations
     ```
-    ``scenario`` ("paper-0.1hz", "paper-0.5hz", "randomized" or a ``Scenario``),
-    ``controller`` (None, "bc", "lesobc", "proposed", a registered plug-in's name or a
-    :class:`blf_gym.blocks.Controller`), ``observer`` ("leso", a registered name or a
-    :class:`blf_gym.blocks.Observer` that provides x2_hat and x3_hat), ``observation_extras``
-    (names of optional observation entries to append, e.g. ("z2_hat",); default none),
-    ``residual_scale`` (N m, 2.0), ``control_period`` (s, 0.01; a multiple of 1 ms),
-    ``privileged`` (False), ``terminate_on_violation`` (True), ``angle_noise_std`` (rad),
-    ``duration`` (s, a whole number of control periods, at most
-    :data:`blf_gym.params.MAX_DURATION`), ``max_torque`` (N m, 150), ``dt`` (s,
-    1e-4), ``variations`` (dict of :data:`blf_gym.scenarios.VARIATIONS`; with
-    ``scenario="randomized"`` they override the suite's draw), ``reward_weights``,
-    ``render_mode`` ("rgb_array" or "human"), ``record`` (False; True keeps the episode's
-    1 ms signals for :meth:`trajectory`), ``record_channels`` (the names of
-    :data:`blf_gym.simulate.CHANNELS` kept with ``record``, default all; fewer keep less
-    memory), ``bound_scale`` (1; a training curriculum's factor on the funnel's width, at most
-    15, also settable between episodes as ``env.unwrapped.bound_scale``; the benchmark is 1).
+{arguments_table('    ')}
+
+    ``render_mode`` ("rgb_array", "rgb_array_list", "human" or None) belongs to the single env.
     ``reset(options=...)`` takes the same variations per episode, applied last. ``control_period`` may also divide 1 ms (down to one integration
     step, as the sampled baseline policies use); steps without a 1 ms sample then have no
     tracking or torque term in their reward.

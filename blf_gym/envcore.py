@@ -6,7 +6,7 @@ compiled closed loop, observations, rewards and info. There is no other copy of 
 from __future__ import annotations
 
 from dataclasses import fields, replace
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
@@ -26,7 +26,7 @@ from .simulate import CHANNELS, ClosedLoop, divergence_message
 from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
                      ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
-__all__ = ["RewardWeights", "EnvCore", "MAX_ARMS", "MAX_BOUND_SCALE", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
+__all__ = ["RewardWeights", "EnvCore", "ARGUMENTS", "INFO_KEYS", "Argument", "InfoKey", "MAX_ARMS", "MAX_BOUND_SCALE", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
            "observation_index", "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE"]
 
 
@@ -52,6 +52,105 @@ MAX_REFERENCE_BYTES = 8 * 2 ** 30
 its per-step error for the relative one) may take over all arms, bytes; beyond it the env refuses
 to be built and says which arguments to lower (``num_envs``, ``duration``) or which reward needs
 none (``reward_weights={}``, the shaped reward)."""
+
+class Argument(NamedTuple):
+    """One keyword argument of the env (``gym.make("PlanarBLF-v0", **kwargs)`` and the vector env):
+    a row of :data:`ARGUMENTS`. Its default is :class:`EnvCore`'s own (read from the signature)."""
+
+    name: str
+    unit: str
+    accepted: str
+    meaning: str
+
+
+ARGUMENTS: tuple[Argument, ...] = (
+    Argument("scenario", "-", '"paper-0.1hz", "paper-0.5hz", "randomized", "stress" or a Scenario',
+             'the episode\'s plant, reference, bounds and disturbances; "randomized" draws the training suite per '
+             'episode, "stress" the held-out stress suite (for evaluation only)'),
+    Argument("controller", "-", 'None, "bc", "lesobc", "proposed", a registered plug-in\'s name or a Controller',
+             "None: plain mode, the action is the torque. A law: residual mode, u = u_law + residual_scale * a, "
+             "the law run at every integration stage"),
+    Argument("observer", "-", '"leso", a registered name or an Observer providing x2_hat and x3_hat',
+             "the state observer inside the env (the observation's velocity and disturbance estimates)"),
+    Argument("residual_scale", "N m", "> 0", "the residual's torque at action 1 (residual mode)"),
+    Argument("control_period", "s", "> 0, at most the duration; a whole number of 1 ms samples, or a divisor of 1 ms "
+             "down to one integration step", "the agent's step: the action is held this long"),
+    Argument("privileged", "-", "True or False", "append the true velocity and disturbance to the observation"),
+    Argument("terminate_on_violation", "-", "True or False",
+             "end the episode at the first integration step outside the bounds; False counts violations in "
+             'info["cost"] and info["violating_samples"] and runs on'),
+    Argument("angle_noise_std", "rad", ">= 0 or None (the scenario's)",
+             "Gaussian noise on the measured angles (observer, law and observation)"),
+    Argument("duration", "s", "> 0, at most blf_gym.params.MAX_DURATION (3600), or None (the scenario's, 30)",
+             "the episode's simulated time; a whole number of control periods"),
+    Argument("max_torque", "N m", "> 0 or None (the scenario's, 150)", "the actuator's limit; plain mode's action scale"),
+    Argument("dt", "s", ">= 1e-7 or None (the scenario's, 1e-4)", "the ODE3 integration step"),
+    Argument("variations", "-", "a dict of blf_gym.scenarios.VARIATIONS",
+             "changes to the scenario (with \"randomized\", they override the suite's draw); reset(options=...) "
+             "takes the same per episode"),
+    Argument("reward_weights", "-", "None, a RewardWeights or a dict of its fields",
+             "None: the score reward; a dict: the shaped reward with those weights"),
+    Argument("observation_extras", "-", "names of optional entries of blf_gym.observation.OBSERVATION",
+             "optional observation entries appended after the others, in the order named"),
+    Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law',
+             "a safety filter between the action and the actuator (residual mode: on the residual; plain mode: on "
+             "the torque minus the proposed law's)"),
+    Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
+             "a training curriculum's factor on the funnel's width; the benchmark is 1. Also settable between "
+             "episodes as env.unwrapped.bound_scale"),
+    Argument("threads", "-", ">= 1 or None (1 for the single env, half the cores for the vector env)",
+             "numba threads the arms are split over"),
+    Argument("record", "-", "True or False", "keep the episode's 1 ms signals for env.unwrapped.trajectory()"),
+    Argument("record_channels", "-", "names of blf_gym.simulate.CHANNELS, or None (all)",
+             "the signals kept with record; fewer keep less memory"),
+)
+"""The env's keyword arguments, declared once (the docs' table is made from it; a test checks
+that its names are :class:`EnvCore`'s)."""
+
+
+class InfoKey(NamedTuple):
+    """One key of the env's ``info`` dict: a row of :data:`INFO_KEYS`."""
+
+    name: str
+    unit: str
+    when: str
+    meaning: str
+
+
+INFO_KEYS: tuple[InfoKey, ...] = (
+    InfoKey("time", "s", "always", "simulated time"),
+    InfoKey("e1", "rad", "always", "the true tracking error q - q_d, per joint"),
+    InfoKey("k_a", "rad", "always", "the upper bound (e1 < k_a)"),
+    InfoKey("k_b", "rad", "always", "the lower bound (e1 > -k_b)"),
+    InfoKey("g_upper", "rad", "always", "constraint margin e1 - k_a (<= 0 is safe)"),
+    InfoKey("g_lower", "rad", "always", "constraint margin -k_b - e1 (<= 0 is safe)"),
+    InfoKey("scenario", "-", "reset", "the episode's Scenario"),
+    InfoKey("cost", "-", "step", "1.0 if any integration step of this agent step broke a bound, else 0.0"),
+    InfoKey("violating_samples", "-", "step", "violating 1 ms samples in this agent step"),
+    InfoKey("u", "N m", "step", "the applied torque, at the start of the step's last integration step"),
+    InfoKey("u_law", "N m", "step", "the inner law's torque, at the same instant"),
+    InfoKey("u_residual", "N m", "step", "the residual's torque (residual mode), after any filter"),
+    InfoKey("saturated", "-", "step", "the actuator limit clipped the torque at some integration step"),
+    InfoKey("x3", "rad/s^2", "step",
+            "the true lumped disturbance against the nominal model, at the step's last 1 ms sample (t_end - 1 ms)"),
+    InfoKey("x3_hat", "rad/s^2", "step", "the observer's estimate of x3, at the same sample"),
+    InfoKey("controller_outputs", "-", "step",
+            "the inner law's published outputs besides u_law, by name, at the start of the step's last "
+            "integration step (the proposed law's z1 rad, z2_hat rad/s, barrier 1/rad)"),
+    InfoKey("reward_info", "-", "step", "the reward's terms by name: alive, one per reward term, score, violation"),
+    InfoKey("termination_reason", "-", "step", '"violation", "diverged" or None'),
+    InfoKey("truncation_reason", "-", "step", '"time_limit" or None'),
+    InfoKey("filter_outputs", "-", "step, with residual_filter",
+            "the filter's outputs by name (the filtered residual, theta, the budget, its monitors)"),
+    InfoKey("qd", "rad/s", "reset and step, with privileged=True", "the true joint velocities"),
+    InfoKey("diverged_message", "-", "the step that diverged", "what diverged and when"),
+    InfoKey("episode_metrics", "-", "the episode's last step",
+            "the episode's totals in blf-eval's terms: RMSE per joint (deg), violating samples and steps, the "
+            "first violation, divergence, filter breaches and assumption failures, how it ended"),
+)
+"""The env's ``info`` keys, declared once (the docstring's and the docs' tables are made from it; a
+test checks them against what the env returns)."""
+
 
 # per-arm episode totals: integer columns and float columns (then the per-joint sums of e1^2)
 (EP_VIOL_STEPS, EP_FIRST_VIOL, EP_SAT_STEPS, EP_VIOL_SAMPLES, EP_DIV_CODE, EP_DIV_STEP, EP_BREACHES,

@@ -1118,7 +1118,7 @@ class ClosedLoop:
 
     ``lanes`` is the number of arms the kernel steps together in one block: 1 or :data:`LANES`.
     Blocks of LANES arms run the per-arm arithmetic on vector registers, about 1.7 times faster
-    per arm on a mixed batch of 64 (README, Speed), with the same numbers bit for bit. The two are
+    per arm on a mixed batch of 64 (docs/speed.md), with the same numbers bit for bit. The two are
     separate builds of the kernel, each compiled on first use. The default, None, is
     :func:`_choose_lanes`: blocks for two arms or more, one lane for a single arm unless only the
     batch build is compiled already.

@@ -228,9 +228,13 @@ def test_the_readmes_evaluate_policy_snippet_runs_without_warnings(capsys):
     import warnings
     from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    root = Path(__file__).resolve().parents[1]
+    text = (root / "README.md").read_text()
     m = re.search(r"<!-- snippet:evaluate-policy -->\s*```python\n(.*?)```", text, re.S)
     assert m, "README.md has no evaluate-policy snippet"
+    site = re.search(r"<!-- snippet:evaluate-policy -->\s*```python\n(.*?)```",
+                     (root / "docs" / "getting-started.md").read_text(), re.S)
+    assert site and site.group(1) == m.group(1), "docs/getting-started.md's quick start differs from the README's"
     scope: dict = {}
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # SB3's Monitor warning, or any other, fails the snippet

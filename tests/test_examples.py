@@ -23,7 +23,7 @@ from blf_gym.params import preset
 from blf_gym.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
-INSTALL = 'pip install -c constraints-cpu.txt -e ".[dev,sweep,zoo,jax,mpc]" ./examples/blf_integral ./examples/blf_eso4'
+INSTALL = 'pip install -c constraints-cpu.txt -e ".[dev,sweep,zoo,jax,mpc,docs]" ./examples/blf_integral ./examples/blf_eso4'
 
 
 @pytest.fixture(scope="module", autouse=True)

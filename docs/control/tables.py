@@ -86,17 +86,22 @@ def nmpc_table() -> str:
             + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
 
 
-def main() -> None:
+def pages() -> dict[Path, str]:
+    """Every page this script writes, with its text (a page whose results are absent is left out)."""
     out = DOCS / "control"
-    written = [out / "protocol.md"]
-    (out / "protocol.md").write_text(protocol_table())
+    made = {out / "protocol.md": protocol_table()}
     if (DOCS / "filters_plain").is_dir():
-        (out / "filters.md").write_text(filters_table())
-        written.append(out / "filters.md")
+        made[out / "filters.md"] = filters_table()
     if (DOCS / "nmpc" / "results.json").is_file():
-        (out / "nmpc.md").write_text(nmpc_table())
-        written.append(out / "nmpc.md")
-    print("wrote " + ", ".join(str(p) for p in written))
+        made[out / "nmpc.md"] = nmpc_table()
+    return made
+
+
+def main() -> None:
+    made = pages()
+    for path, text in made.items():
+        path.write_text(text)
+    print("wrote " + ", ".join(str(p) for p in made))
 
 
 if __name__ == "__main__":
