@@ -330,6 +330,25 @@ def test_rl_zoo3_trains_the_zoo_config_and_evaluates_on_the_same_kwargs(tmp_path
     ev = dict(args)["eval_env_kwargs"]
     assert ev["residual_scale"] == 8.0 and ev["scenario"] == "randomized" and ev["reward_weights"]["relative"]
 
+    # the evaluation recipe: the run as a blf-eval agent, scored by score_vs_law on the presets
+    conv = subprocess.run([sys.executable, "-m", "agents.zoo", str(run), "--out", str(tmp_path / "agent")],
+                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert conv.returncode == 0, conv.stderr[-2000:]
+    meta = json.loads((tmp_path / "agent" / "metadata.json").read_text())
+    assert meta["mode"] == "residual" and meta["env_kwargs"]["residual_scale"] == 8.0 and meta["config"]["normalize"]
+    assert (tmp_path / "agent" / "vecnormalize.pkl").is_file()
+    ev = subprocess.run(["blf-eval", "--agents", str(tmp_path / "agent"), "--suite-seeds", "0", "--jobs", "1",
+                         "--no-plots", "--no-progress", "--out", str(tmp_path / "eval")],
+                        capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert ev.returncode == 0, ev.stderr[-2000:]
+    recs = json.loads((tmp_path / "eval" / "results.json").read_text())["records"]
+    mine = [r for r in recs if r["policy"] == meta["name"]]
+    assert len(mine) == 2 and all(np.isfinite(r["score_vs_law"]) and r["score_vs_law"] > 0 for r in mine)
+    # a folder that is not an rl-zoo3 run is one line, naming what is missing
+    bad = subprocess.run([sys.executable, "-m", "agents.zoo", str(tmp_path), "--out", str(tmp_path / "x")],
+                         capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "args.yml" in bad.stderr
+
 
 # ---- threads ------------------------------------------------------------------------------------
 
