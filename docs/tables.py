@@ -17,7 +17,7 @@ import importlib.util
 import re
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
@@ -94,9 +94,145 @@ def headline_table(prefix: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
+GROUP_LABEL = {"paper-0.1hz": "0.1 Hz", "paper-0.5hz": "0.5 Hz", "randomized": "training suite",
+               "stress": "stress"}
+
+
+def _load(folder: str, name: str = "results.json") -> Any:
+    import json
+
+    return json.loads((DOCS / folder / name).read_text())
+
+
+def _rmse(v: float) -> str:
+    """An RMSE in degrees: four decimals below 10, two below 1,000, whole degrees above."""
+    return f"{v:.4f}" if v < 10 else (f"{v:.2f}" if v < 1000 else f"{v:,.0f}")
+
+
+def _group(rec: dict) -> str:
+    label = GROUP_LABEL.get(rec["scenario"], rec["scenario"])
+    return label if rec["scenario"].startswith("paper") else f"{label} ({rec['episodes']})"
+
+
+def _pick(records: list[dict], policy: str, scenario: str) -> dict:
+    for r in records:
+        if r["policy"] == policy and r["scenario"] == scenario:
+            return r
+    raise ValueError(f"no {policy} record for {scenario}")
+
+
+def protocol_table() -> str:
+    """The laws and the shipped agents of the default run, per group: BC, LESOBC and the proposed
+    law, seed 0 of the residual and of the certified residual, and the first plain agent, from
+    ``docs/protocol/results.json`` (the certified agent from ``docs/protocol_learners/``)."""
+    main, learners = _load("protocol")["records"], _load("protocol_learners")["records"]
+    rows = [("BC", main, "bc"), ("LESOBC", main, "lesobc"), ("proposed", main, "proposed"),
+            ("**ppo_residual** (seed 0)", main, "ppo_residual_s0"),
+            ("**ppo_residual_certified** (seed 0)", learners, "ppo_residual_certified"),
+            ("ppo_plain", main, "ppo_plain")]
+    out = ["| policy | group | RMSE j1 (deg) | j2 | j3 | score_vs_law | violating samples | failure rate | "
+           "certificate_broken |", "|---|---|---|---|---|---|---|---|---|"]
+    for g in _GROUPS:
+        for label, recs, policy in rows:
+            r = _pick(recs, policy, g)
+            out.append(f"| {label} | {_group(r)} | {' | '.join(_rmse(v) for v in r['rmse_deg'])} | "
+                       f"{r['score_vs_law']:.3f} | {sum(r['violations']):,} | {r['failure_rate']:.2f} | "
+                       f"{r['certificate_broken']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+def _ci(stat: dict, key: str, digits: int) -> str:
+    lo, hi = stat[f"{key}_ci95" if key != "iqm" else "ci95"]
+    v = stat[key]
+    return f"{v:.{digits}f} [{lo:.{digits}f}, {hi:.{digits}f}]"
+
+
+def statistics_table(folder: str, policies: tuple[str, ...], report: str = "report.json") -> str:
+    """rliable's statistics per group (IQM of ``score_vs_law`` over seeds x episodes with its 95 %
+    stratified-bootstrap interval, the probability of improvement over the law), from the
+    ``statistics`` of ``python -m agents.report``'s JSON in ``docs/<folder>``."""
+    stats = _load(folder, report)["statistics"] if folder else _load("", report)["statistics"]
+    out = ["| policy | group | seeds x episodes | IQM score_vs_law [95 % CI] | P(improvement over the law) "
+           "[95 % CI] | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|"]
+    for g in _GROUPS:
+        for policy in policies:
+            st = next(x for x in stats if x["policy"] == policy and x["scenario"] == g)
+            label = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
+            out.append(f"| {policy} | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
+                       f"{_ci(st, 'prob_improvement', 2)} | {st['failure_rate']:.2f} | "
+                       f"{st['certificate_broken']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+def seeds_table() -> str:
+    """Each residual seed's ``score_vs_law`` on the pooled RMSEs of each group, and whether it broke
+    the certificate on the stress suite, from ``docs/protocol/results.json``."""
+    recs = _load("protocol")["records"]
+    seeds = sorted(int(r["policy"].rsplit("_s", 1)[1]) for r in recs
+                   if r["policy"].startswith("ppo_residual_s") and r["scenario"] == "stress")
+    out = ["| seed | 0.1 Hz | 0.5 Hz | training suite | stress | stress certificate_broken |",
+           "|---|---|---|---|---|---|"]
+    for k in seeds:
+        r = {g: _pick(recs, f"ppo_residual_s{k}", g) for g in _GROUPS}
+        out.append(f"| {k} | " + " | ".join(f"{r[g]['score_vs_law']:.3f}" for g in _GROUPS)
+                   + f" | {r['stress']['certificate_broken']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+def learners_table() -> str:
+    """The searched plain agent and PPO-Lagrangian beside the law, the residual and the first plain
+    agent, from ``docs/protocol_learners/`` (results.json, and report.json for the IQM over
+    episodes)."""
+    recs = _load("protocol_learners")["records"]
+    stats = _load("protocol_learners", "report.json")["statistics"]
+    out = ["| policy | group | RMSE j1 (deg) | j2 | j3 | score_vs_law (pooled) | IQM score_vs_law over episodes | "
+           "violating samples | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for policy, label in (("proposed", "proposed"), ("ppo_residual", "ppo_residual"), ("ppo_plain", "ppo_plain"),
+                          ("ppo_plain_searched", "**ppo_plain_searched**"),
+                          ("ppo_lagrangian", "**ppo_lagrangian**")):
+        for g in _GROUPS:
+            r = _pick(recs, policy, g)
+            st = next(x for x in stats if x["policy"] == policy and x["scenario"] == g)
+            out.append(f"| {label} | {_group(r)} | {' | '.join(_rmse(v) for v in r['rmse_deg'])} | "
+                       f"{r['score_vs_law']:.3f} | {st['iqm']:.3f} | {sum(r['violations']):,} | "
+                       f"{r['failure_rate']:.2f} | {r['certificate_broken']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+def reproduction_table() -> str:
+    """The paper's six cases beside its Tables 3-4, from ``docs/reproduction/results.json``
+    (``blf-reproduce --out docs/reproduction``) and ``baselines.reproduce.PAPER_RMSE_DEG``."""
+    from baselines.reproduce import PAPER_RMSE_DEG
+
+    recs = _load("reproduction")["records"]
+    names = {"bc": "BC", "lesobc": "LESOBC", "proposed": "proposed"}
+    out = ["| case | controller | RMSE j1 | j2 | j3 | paper j1 | j2 | j3 | violating 1 ms samples (j1/j2/j3) | "
+           "peak torque (N m) |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for g in ("paper-0.1hz", "paper-0.5hz"):
+        for c in ("bc", "lesobc", "proposed"):
+            r = _pick(recs, c, g)
+            viol = "/".join(str(int(v)) for v in r["violations"])
+            if sum(r["violations"]) == 0 and c == "proposed":
+                viol = f"**{viol}**"
+            out.append(f"| {GROUP_LABEL[g]} | {names[c]} | {' | '.join(f'{v:.4f}' for v in r['rmse_deg'])} | "
+                       f"{' | '.join(f'{v:.4f}' for v in PAPER_RMSE_DEG[(g, c)])} | {viol} | "
+                       f"{'/'.join(f'{v:.1f}' for v in r['torque_peak'])} |")
+    return "\n".join(out) + "\n"
+
+
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/")},
-    "docs/results.md": {"headline": headline_table},
+    "docs/reproduction.md": {"reproduction": reproduction_table},
+    "docs/results.md": {
+        "headline": headline_table,
+        "protocol": protocol_table,
+        "seed-statistics": lambda: statistics_table("", ("proposed", "ppo_residual", "bc", "lesobc"),
+                                                    "seeds_report.json"),
+        "seeds": seeds_table,
+        "certified-statistics": lambda: statistics_table("protocol_certified",
+                                                         ("proposed", "ppo_residual", "ppo_residual_certified")),
+        "learners": learners_table,
+    },
     "docs/environment.md": {
         "env-arguments": _env("arguments_table"),
         "env-observation": _env("observation_table", False),
