@@ -9,7 +9,11 @@ Example::
 
     blf-curves runs/final/sac_s0 runs/final/sac_s1 runs/final/sac_s2 --out docs/learning_curves.png
 
-Without ``--out`` the figure goes to ``learning_curves.png`` in the first run's folder.
+Without ``--out`` the figure goes to ``learning_curves.png`` in the first run's folder. For runs of
+millions of steps, ``--log-steps`` puts the steps on a logarithmic axis (the point at step 0, the
+untrained policy, is then drawn at half the first evaluated step and marked so), which shows whether
+a learner still improves at the end; ``--log-rmse`` does the same for the RMSE, for learners whose
+error is orders of magnitude above the law's.
 """
 
 from __future__ import annotations
@@ -28,8 +32,10 @@ __all__ = ["main", "plot_curves"]
 
 
 def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | None = None,
-                title: str | None = None) -> Path:
-    """Draw the curves of ``runs`` into the PNG ``out`` (written atomically) and return its path."""
+                title: str | None = None, log_steps: bool = False, log_rmse: bool = False) -> Path:
+    """Draw the curves of ``runs`` into the PNG ``out`` (written atomically) and return its path;
+    ``log_steps`` and ``log_rmse`` put the steps and the RMSE on logarithmic axes (module
+    docstring)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -54,9 +60,12 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         first = curves[0][1]
         law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))
     fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, 3, figsize=(13, 11), sharex=True)
+    scale = 1.0 if log_steps else 1e3
     for name, c in curves:
         pts = c["points"]
-        steps = np.array([p["timesteps"] for p in pts]) / 1e3
+        steps = np.array([p["timesteps"] for p in pts], dtype=float) / scale
+        if log_steps and len(steps) > 1 and steps[0] == 0.0:
+            steps[0] = 0.5 * steps[1]  # the untrained policy, drawn at half the first evaluated step
         for gi, g in enumerate(CURVE_GROUPS):
             rmse = np.array([p[g]["rmse_deg"] for p in pts])
             for j in range(3):
@@ -69,15 +78,25 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
             ax.axhline(law[g][j], color="k", ls="--", lw=1.2, label="proposed law")
             ax.set_title(f"{g}, joint {j + 1}", fontsize=9)
             ax.set_ylabel("RMSE (deg)")
-            ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+            if log_rmse:
+                ax.set_yscale("log")
+            else:
+                ax.ticklabel_format(axis="y", style="plain", useOffset=False)
+            if log_steps:
+                ax.set_xscale("log")
             ax.grid(alpha=0.3)
     axes[-1, 0].axhline(0, color="k", ls="--", lw=1.2, label="proposed law")
     axes[-1, 0].set_ylabel("violating samples\n(all scenarios)")
     axes[-1, 0].grid(alpha=0.3)
     for j in (1, 2):
         axes[-1, j].axis("off")
+    if log_steps:
+        axes[-1, 0].set_xscale("log")
+        axes[-1, 0].set_yscale("symlog", linthresh=1.0)
+        axes[-1, 0].set_ylim(bottom=0.0)
     for j in range(3):
-        axes[-1, j].set_xlabel("training steps (thousands)")
+        axes[-1, j].set_xlabel("training steps (log; step 0 drawn at half the first evaluation)" if log_steps
+                               else "training steps (thousands)")
     handles, labels = axes[0, 0].get_legend_handles_labels()
     axes[-1, 1].legend(handles, labels, loc="center", fontsize=9)
     fig.suptitle(title or "Learning curves: deterministic policy, blf-eval metrics", fontsize=11)
@@ -97,6 +116,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="PNG to write (default: learning_curves.png in the first run's folder)")
     p.add_argument("--title", default=None,
                    help="figure title (default: 'Learning curves: deterministic policy, blf-eval metrics')")
+    p.add_argument("--log-steps", action="store_true",
+                   help="training steps on a logarithmic axis (for long runs; off by default)")
+    p.add_argument("--log-rmse", action="store_true", help="RMSE on a logarithmic axis (off by default)")
     return p
 
 
@@ -104,7 +126,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     out = args.out if args.out is not None else args.runs[0] / "learning_curves.png"
     try:
-        path = plot_curves(args.runs, out, title=args.title)
+        path = plot_curves(args.runs, out, title=args.title, log_steps=args.log_steps, log_rmse=args.log_rmse)
     except ValueError as exc:
         print(f"blf-curves: error: {exc}", file=sys.stderr)
         return 2

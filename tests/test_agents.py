@@ -409,6 +409,27 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
 
     assert curves_main([str(out), "--out", str(tmp_path / "c.png")]) == 0
     assert (tmp_path / "c.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # on logarithmic axes the untrained point (step 0) is drawn at half the first evaluated step
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from agents.curves import plot_curves
+
+    captured = {}
+    real_close = plt.close
+    try:
+        plt.close = lambda fig=None: captured.setdefault("fig", fig)
+        plot_curves([out], tmp_path / "log.png", log_steps=True, log_rmse=True)
+    finally:
+        plt.close = real_close
+    ax = captured["fig"].axes[0]
+    assert ax.get_xscale() == "log" and ax.get_yscale() == "log"
+    xs = ax.lines[0].get_xdata()
+    assert xs[0] == 0.5 * xs[1] == 0.5 * steps[1]
+    real_close(captured["fig"])
+    assert curves_main([str(out), "--log-steps", "--out", str(tmp_path / "l.png")]) == 0
     assert curves_main([str(tmp_path / "nothing"), "--out", str(tmp_path / "d.png")]) == 2
     # runs scored on different scenarios cannot share one law line
     other = tmp_path / "other" / "eval"
