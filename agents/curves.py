@@ -47,6 +47,8 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
     curves = []
     for run in runs:
         path = Path(run) / "eval" / "curve.json"
+        if not path.is_file() and (Path(run) / "curve.json").is_file():
+            path = Path(run) / "curve.json"  # a run's record as kept in docs/ (docs/budget/runs/NAME)
         if not path.is_file():
             raise ValueError(f"{run}: no eval/curve.json (was it trained by blf-train?)")
         curves.append((Path(run).name, json.loads(path.read_text())))

@@ -430,6 +430,10 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
     assert xs[0] == 0.5 * xs[1] == 0.5 * steps[1]
     real_close(captured["fig"])
     assert curves_main([str(out), "--log-steps", "--out", str(tmp_path / "l.png")]) == 0
+    kept = tmp_path / "kept"  # a run as docs/ keeps it: curve.json at the top
+    kept.mkdir()
+    (kept / "curve.json").write_text((out / "eval" / "curve.json").read_text())
+    assert curves_main([str(kept), "--out", str(tmp_path / "k.png")]) == 0
     assert curves_main([str(tmp_path / "nothing"), "--out", str(tmp_path / "d.png")]) == 2
     # runs scored on different scenarios cannot share one law line
     other = tmp_path / "other" / "eval"
