@@ -82,7 +82,7 @@ def nmpc_table() -> str:
         + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
     return (f"Written by `python docs/control/tables.py` from `docs/nmpc/results.json` (`{cmd}`, "
             "docs/nmpc/run.sh). Wall time per episode: the group's share of the batches' wall time over its "
-            "episodes, the NMPC's two solver processes on this 2-core machine, alone on it." + solver + "\n\n"
+            "episodes, the NMPC's two solver processes on this 2-core machine (docs/model.md section 15 says what else ran)." + solver + "\n\n"
             + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
 
 
