@@ -60,6 +60,7 @@ HEADLINE = (
 """The headline comparison's rows: one per method, its shipped or best configuration."""
 
 _GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized", "stress")
+"""The protocol's four groups, in table order."""
 
 
 def headline_table(prefix: str = "") -> str:
@@ -67,8 +68,6 @@ def headline_table(prefix: str = "") -> str:
     held-out episodes and the stress suite (pooled RMSEs), the failure rates and the stress suite's
     ``certificate_broken``; links are ``prefix`` + the page (the README passes ``docs/``). A method
     whose results file is absent is left out."""
-    import json
-
     cache: dict[str, list[dict]] = {}
     lines = ["| method | kind | score 0.1 Hz / 0.5 Hz | score, training suite | score, stress | "
              "failure rate, training / stress | certificate broken, stress | full table |",
@@ -78,7 +77,7 @@ def headline_table(prefix: str = "") -> str:
         if not path.is_file():
             continue
         if folder not in cache:
-            cache[folder] = json.loads(path.read_text())["records"]
+            cache[folder] = _load(folder)["records"]
         rec = {r["scenario"]: r for r in cache[folder] if r["policy"] == policy}
         missing = [g for g in _GROUPS if g not in rec]
         if missing:
@@ -94,8 +93,10 @@ def headline_table(prefix: str = "") -> str:
     return "\n".join(lines) + "\n"
 
 
-GROUP_LABEL = {"paper-0.1hz": "0.1 Hz", "paper-0.5hz": "0.5 Hz", "randomized": "training suite",
-               "stress": "stress"}
+CONTROL = _module(DOCS / "control" / "tables.py")
+"""docs/control/tables.py, which writes the control side's pages."""
+GROUP_LABEL: dict[str, str] = CONTROL.GROUPS
+"""A scenario group's label in the tables (the control pages' own)."""
 
 
 def _load(folder: str, name: str = "results.json") -> Any:
@@ -151,7 +152,7 @@ def statistics_table(folder: str, policies: tuple[str, ...], report: str = "repo
     """rliable's statistics per group (IQM of ``score_vs_law`` over seeds x episodes with its 95 %
     stratified-bootstrap interval, the probability of improvement over the law), from the
     ``statistics`` of ``python -m agents.report``'s JSON in ``docs/<folder>``."""
-    stats = _load(folder, report)["statistics"] if folder else _load("", report)["statistics"]
+    stats = _load(folder, report)["statistics"]
     out = ["| policy | group | seeds x episodes | IQM score_vs_law [95 % CI] | P(improvement over the law) "
            "[95 % CI] | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|"]
     for g in _GROUPS:
@@ -260,8 +261,7 @@ def pages() -> dict[Path, str]:
         for name, make in blocks.items():
             text = fill(text, name, make(), rel)
         out[path] = text
-    control = _module(DOCS / "control" / "tables.py")
-    out.update(control.pages())
+    out.update(CONTROL.pages())
     return out
 
 
