@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from blf_gym import ENV_IDS
+from blf_gym.io import atomic_write_text, os_error_message
 
 __all__ = ["convert"]
 
@@ -83,9 +84,7 @@ def convert(run: str | Path, out: str | Path, best: bool = False, name: str | No
             "algo": args.get("algo"), "mode": mode, "env_id": ENV_IDS[mode], "env_kwargs": env_kwargs,
             "seed": args.get("seed"), "config": {"normalize": normalize}, "source": "rl-zoo3",
             "zoo_run": str(run.resolve()), "zoo_model": model.name}
-    tmp = out / "metadata.json.tmp"
-    tmp.write_text(json.dumps(meta, indent=1, default=str))
-    tmp.replace(out / "metadata.json")
+    atomic_write_text(out / "metadata.json", json.dumps(meta, indent=1, default=str))
     from .loading import check_agent_folder
 
     check_agent_folder(out)
@@ -104,6 +103,9 @@ def main(argv: list[str] | None = None) -> int:
         out = convert(a.run, a.out, a.best, a.name)
     except ValueError as e:
         print(f"python -m agents.zoo: error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:  # an --out that is a file, a full disk, a read-only folder
+        print(f"python -m agents.zoo: error: {os_error_message(e, a.out)}", file=sys.stderr)
         return 2
     print(f"wrote {out}; score it with: blf-eval --agents {out}")
     return 0

@@ -348,6 +348,11 @@ def test_rl_zoo3_trains_the_zoo_config_and_evaluates_on_the_same_kwargs(tmp_path
     bad = subprocess.run([sys.executable, "-m", "agents.zoo", str(tmp_path), "--out", str(tmp_path / "x")],
                          capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1 and "args.yml" in bad.stderr
+    # an --out that is a file: one line naming it, not a traceback
+    (tmp_path / "afile").write_text("x")
+    clash = subprocess.run([sys.executable, "-m", "agents.zoo", str(run), "--out", str(tmp_path / "afile")],
+                           capture_output=True, text=True, timeout=300, cwd=ROOT)
+    assert clash.returncode == 2 and len(clash.stderr.strip().splitlines()) == 1 and "afile" in clash.stderr
 
 
 # ---- threads ------------------------------------------------------------------------------------
