@@ -35,6 +35,8 @@ Counted cases:
   (the limit wins). Either makes ``assumptions`` 0 too, so the kernel counts it.
 * ``breach``: the condition fails by more than the round-off tolerance in a stage that was feasible,
   which the construction rules out.
+* ``handed_back`` (1 in that stage): the hand-back monitor (``handback``, off by default) saw the
+  observer's innovation |y - x1_hat| above it on a joint, so r_f = 0 and the law acts alone.
 * ``assumptions`` is 0 when an assumption of the guarantee fails: infeasibility, the observer's
   velocity error above ``e2_max``, or the measurement noise above ``noise_fraction`` of the true
   margin (the monitors read the true state; r_f reads only measured signals).
@@ -50,11 +52,12 @@ from numba import njit
 
 from blf_gym.blocks import ResidualFilter, mass_solve, mass_times, nominal_acceleration
 
+from .filters import innovation_exceeds
 from .params import params_from
 
 __all__ = ["CBFFilterParams", "cbf_filter", "cbf_apply", "CBF_OUTPUTS"]
 
-CBF_OUTPUTS = {"r_f": "n", "active": 1, "infeasible": 1, "breach": 1, "assumptions": 1}
+CBF_OUTPUTS = {"r_f": "n", "active": 1, "infeasible": 1, "breach": 1, "assumptions": 1, "handed_back": 1}
 
 
 @dataclass(frozen=True)
@@ -72,10 +75,14 @@ class CBFFilterParams:
     """Assumption monitor: the observer's velocity error |x2_hat - qd| stays below this."""
     noise_fraction: float = field(default=0.1, metadata={"unit": "-"})
     """Assumption monitor: the measurement noise |y - q| stays below this fraction of the true margin."""
+    handback: float = field(default=0.0, metadata={"unit": "rad"})
+    """Hand-back monitor (>= 0; 0 turns it off), as the barrier filter's
+    (:attr:`baselines.filters.BarrierFilterParams.handback`): while the observer's innovation exceeds
+    it on a joint, r_f = 0 and the law's command passes unfiltered."""
 
     def __post_init__(self) -> None:
         o = "CBFFilterParams"
-        for name in ("gamma1", "gamma2", "e2_max", "noise_fraction"):
+        for name in ("gamma1", "gamma2", "e2_max", "noise_fraction", "handback"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"{o}.{name} must be a finite number, got {v!r}")
@@ -87,12 +94,14 @@ class CBFFilterParams:
             raise ValueError(f"{o}.e2_max must be > 0 rad/s, got {self.e2_max!r}")
         if not 0.0 < self.noise_fraction < 1.0:
             raise ValueError(f"{o}.noise_fraction must be in (0, 1), got {self.noise_fraction!r}")
+        if self.handback < 0:
+            raise ValueError(f"{o}.handback must be >= 0 rad (0: off), got {self.handback!r}")
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b, k_b_dot, k_b_ddot,
-              u_max, gamma1, gamma2, e2_max, noise_fraction, q_true, qd_true, nominal, work,
-              r_f, active, infeasible, breach, assumptions):
+              u_max, gamma1, gamma2, e2_max, noise_fraction, handback, q_true, qd_true, x1_hat, nominal, work,
+              r_f, active, infeasible, breach, assumptions, handed_back):
     """The filter's ``apply`` over named signals (see the module docstring)."""
     n = residual.shape[0]
     c1 = gamma1 + gamma2
@@ -132,6 +141,13 @@ def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot
             act += 1
             a = lo[i]
         t2[i] = a - a_law[i]
+    lost = innovation_exceeds(y, x1_hat, handback)
+    handed_back[0] = 1.0 if lost else 0.0
+    if lost:  # the hand-back: the law's command passes unfiltered
+        act = 0
+        infeas = False
+        for i in range(n):
+            rc[i] = 0.0
     if act == 0:
         for i in range(n):
             r_f[i] = rc[i]  # inactive: the identity, bit for bit
@@ -149,8 +165,8 @@ def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot
     for i in range(n):
         a = a_law[i] + da[i]
         tol = 1e-9 * max(1.0, abs(lo[i]), abs(hi[i]))
-        if lo[i] <= hi[i] and (a > hi[i] + tol or a < lo[i] - tol):
-            bad = True
+        if not lost and lo[i] <= hi[i] and (a > hi[i] + tol or a < lo[i] - tol):
+            bad = True  # (handed back, the condition is not asked of the law's command)
     if bad and act > 0:
         infeas = True  # the torque limit stopped the filter: counted as infeasible
         bad = False

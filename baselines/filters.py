@@ -14,7 +14,8 @@ a budget beta(m) that shrinks to 0 as the smallest normalized margin m to the bo
   then scaled: r_f = theta r with theta = min(gamma, beta / (z2_hat^T r)) when z2_hat^T r > 0, else
   gamma: the size of r_f shrinks to 0 at m0 too, so the term the estimate cannot see,
   (x2 - x2_hat)^T r_f, vanishes there as well;
-* r_f = 0 while u_law itself saturates.
+* r_f = 0 while u_law itself saturates, and while the hand-back monitor sees the observer's
+  innovation |y - x1_hat| above ``handback`` on a joint (off by default): the law then acts alone.
 
 It publishes ``theta`` and ``beta`` and two monitors the kernel counts per integration step:
 ``breach`` (the condition z2_hat^T r_f <= beta failed by more than 1e-12, which the construction
@@ -36,9 +37,9 @@ from blf_gym.blocks import ResidualFilter
 
 from .params import params_from
 
-__all__ = ["BarrierFilterParams", "barrier_filter", "barrier_apply", "FILTER_OUTPUTS"]
+__all__ = ["BarrierFilterParams", "barrier_filter", "barrier_apply", "innovation_exceeds", "FILTER_OUTPUTS"]
 
-FILTER_OUTPUTS = {"r_f": "n", "theta": 1, "beta": 1, "breach": 1, "assumptions": 1}
+FILTER_OUTPUTS = {"r_f": "n", "theta": 1, "beta": 1, "breach": 1, "assumptions": 1, "handed_back": 1}
 
 
 @dataclass(frozen=True)
@@ -60,10 +61,16 @@ class BarrierFilterParams:
     """Assumption monitor: the observer's velocity error |x2_hat - qd| stays below this."""
     noise_fraction: float = field(default=0.1, metadata={"unit": "-"})
     """Assumption monitor: the measurement noise |y - q| stays below this fraction of the true margin."""
+    handback: float = field(default=0.0, metadata={"unit": "rad"})
+    """Hand-back monitor (>= 0; 0 turns it off): while the observer's innovation |y_i - x1_hat_i|
+    exceeds this on any joint, r_f = 0 and the law acts alone (output ``handed_back`` 1). It is the
+    assumption monitor r_f can read: the LESO's error dynamics give x2 - x2_hat = 3 k0 (y - x1_hat)
+    once its fast transient has passed, so an innovation above e2_max / (3 k0) (3.3e-3 rad at the
+    defaults) means the velocity-error assumption has failed (:func:`innovation_exceeds`)."""
 
     def __post_init__(self) -> None:
         o = "BarrierFilterParams"
-        for name in ("beta_max", "m0", "m1", "gain_max", "e2_max", "noise_fraction"):
+        for name in ("beta_max", "m0", "m1", "gain_max", "e2_max", "noise_fraction", "handback"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
                 raise ValueError(f"{o}.{name} must be a finite number, got {v!r}")
@@ -74,6 +81,8 @@ class BarrierFilterParams:
             raise ValueError(f"{o}: margins must satisfy 0 <= m0 < m1 <= 1, got m0 = {self.m0!r}, m1 = {self.m1!r}")
         if self.gain_max <= 0:
             raise ValueError(f"{o}.gain_max must be > 0 N m s/rad, got {self.gain_max!r}")
+        if self.handback < 0:
+            raise ValueError(f"{o}.handback must be >= 0 rad (0: off), got {self.handback!r}")
         if self.e2_max <= 0 or not (0.0 < self.noise_fraction < 1.0):
             raise ValueError(f"{o}: e2_max must be > 0 rad/s and noise_fraction in (0, 1), got {self.e2_max!r}, "
                              f"{self.noise_fraction!r}")
@@ -81,9 +90,11 @@ class BarrierFilterParams:
 
 @njit(cache=True, error_model="numpy", inline="always")
 def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1, gain_max, e2_max, noise_fraction,
-                  barrier_clip, y, q_true, qd_true, q_d, x2_hat, r_f, theta, beta, breach, assumptions):
+                  handback, barrier_clip, y, q_true, qd_true, q_d, x1_hat, x2_hat, r_f, theta, beta, breach,
+                  assumptions, handed_back):
     """The filter's ``apply`` over named signals (see the module docstring)."""
     n = residual.shape[0]
+    lost = innovation_exceeds(y, x1_hat, handback)
     saturated = False
     m = 1.0
     for i in range(n):
@@ -112,7 +123,7 @@ def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1
     # see, (z2 - z2_hat)^T r_f = (x2 - x2_hat)^T r_f, vanishes at m0 too
     big = b / ramp if ramp > 0.0 else 0.0  # max(beta_max, |r|^2 / gain_max)
     th = ramp
-    if saturated:
+    if saturated or lost:
         th = 0.0
     elif ramp > 0.0 and s > big:
         th = b / s  # = ramp * big / s < ramp: the condition is met with equality
@@ -136,6 +147,19 @@ def barrier_apply(residual, u_law, z1, z2_hat, k_a, k_b, u_max, beta_max, m0, m1
         if abs(y[i] - q_true[i]) > noise_fraction * (bound - abs(e)):
             ok = False
     assumptions[0] = 1.0 if ok else 0.0
+    handed_back[0] = 1.0 if lost else 0.0
+
+
+@njit(cache=True)
+def innovation_exceeds(y, x1_hat, limit):
+    """Whether the observer's innovation |y_i - x1_hat_i| exceeds ``limit`` on any joint (never when
+    ``limit`` is 0): both filters' hand-back monitor."""
+    if limit <= 0.0:
+        return False
+    for i in range(y.shape[0]):
+        if abs(y[i] - x1_hat[i]) > limit:
+            return True
+    return False
 
 
 def barrier_filter(**kwargs: Any) -> ResidualFilter:

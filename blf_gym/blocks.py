@@ -665,9 +665,16 @@ def _source_of(fn: Any) -> bytes:
         return py.__code__.co_code
 
 
+_MAX_INLINE_ARGS = 30
+"""CPython passes a call of more arguments as one tuple (``f(*args)``), which numba cannot inline."""
+
+
 def _compiled(fn: Any):
-    """The plug-in function as a numba function inlined into the kernel."""
-    return njit(inline="always", error_model="numpy", cache=False)(getattr(fn, "py_func", fn))
+    """The plug-in function as a numba function inlined into the kernel (called, not inlined, when it
+    reads more than :data:`_MAX_INLINE_ARGS` signals)."""
+    py = getattr(fn, "py_func", fn)
+    inline = "always" if py.__code__.co_argcount <= _MAX_INLINE_ARGS else "never"
+    return njit(inline=inline, error_model="numpy", cache=False)(py)
 
 
 _CONNECTIONS: dict[tuple, Connection] = {}

@@ -34,12 +34,15 @@ def _case(rng, u_max=1e6, k_a_dot=None):
     return s, rng.normal(0, 10, 3), rng.normal(0, 30, 3), u_max
 
 
-def _run(s, u_law, residual, u_max, p=CBFFilterParams()):
-    out = [np.zeros(3), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)]
-    # the monitors' true state is the measured one here (q_true = y, qd_true = x2_hat)
+def _run(s, u_law, residual, u_max, p=CBFFilterParams(), x1_hat=None):
+    out = [np.zeros(3), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1), np.zeros(1)]
+    # the monitors' true state is the measured one here (q_true = y, qd_true = x2_hat); the observer's
+    # x1_hat is y (no innovation) unless given
+    x1_hat = s["y"] if x1_hat is None else x1_hat
     cbf_apply.py_func(residual, u_law, s["y"], s["x2_hat"], s["x3_hat"], s["q_d"], s["qd_d"], s["qdd_d"], s["k_a"],
                       s["k_a_dot"], s["k_a_ddot"], s["k_b"], s["k_b_dot"], s["k_b_ddot"], u_max, p.gamma1, p.gamma2,
-                      p.e2_max, p.noise_fraction, s["y"], s["x2_hat"], _nominal(s["y"]), np.zeros(64), *out)
+                      p.e2_max, p.noise_fraction, p.handback, s["y"], s["x2_hat"], x1_hat, _nominal(s["y"]),
+                      np.zeros(64), *out)
     return out
 
 
@@ -70,7 +73,7 @@ def test_the_closed_form_is_the_qp_solution_osqp_finds():
     active = 0
     for _ in range(40):
         s, u_law, r, u_max = _case(rng)
-        r_f, act, infeasible, breach, _ = _run(s, u_law, r, u_max, p)
+        r_f, act, infeasible, breach, _, _ = _run(s, u_law, r, u_max, p)
         lo, hi = _bounds(s, p)
         assert infeasible[0] == 0 and breach[0] == 0
         Minv = np.linalg.inv(mass_matrix(s["y"]))
@@ -100,6 +103,26 @@ def test_inactive_it_is_the_identity():
     assert act[0] == 0 and np.array_equal(r_f, np.zeros(3))
 
 
+def test_the_hand_back_passes_the_laws_command_while_the_innovation_is_above_its_limit():
+    """A case where the condition is active: with the monitor at 3e-3 rad an innovation of 2e-3
+    changes nothing (bit for bit against the monitor off); 4e-3 on one joint gives r_f = 0, no
+    activity and no breach counted, and says so."""
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        s, u_law, r, u_max = _case(rng)
+        if _run(s, u_law, r, u_max)[1][0] > 0:
+            break
+    on = CBFFilterParams(handback=3e-3)
+    off = _run(s, u_law, r, u_max)
+    assert off[1][0] > 0  # the condition is active here
+    below = _run(s, u_law, r, u_max, on, x1_hat=s["y"] - 2e-3)
+    for a, b in zip(below, off):
+        np.testing.assert_array_equal(a, b)
+    r_f, act, infeasible, breach, _, handed_back = _run(s, u_law, r, u_max, on, x1_hat=s["y"] + [0.0, 4e-3, 0.0])
+    np.testing.assert_array_equal(r_f, np.zeros(3))
+    assert act[0] == 0 and infeasible[0] == 0 and breach[0] == 0 and handed_back[0] == 1
+
+
 def test_the_infeasible_cases_are_handled_and_counted():
     rng = np.random.default_rng(2)
     # a torque limit that stops the filter: the limit wins, the stage is counted, the guarantee's
@@ -112,7 +135,7 @@ def test_the_infeasible_cases_are_handled_and_counted():
         if out[1][0] == 0:
             continue
         u_max = float(np.abs(u_law).max()) + 1e-3  # barely any room left beyond the law
-        r_f, act, infeasible, breach, assumptions = _run(s, u_law, r, u_max, CBFFilterParams(gamma1=20.0, gamma2=20.0))
+        r_f, act, infeasible, breach, assumptions, _ = _run(s, u_law, r, u_max, CBFFilterParams(gamma1=20.0, gamma2=20.0))
         assert np.all(np.abs(u_law + r_f) <= u_max + 1e-9)
         lo, hi = _bounds(s, CBFFilterParams(gamma1=20.0, gamma2=20.0))
         a = _accel(s, u_law + r_f)
@@ -125,7 +148,7 @@ def test_the_infeasible_cases_are_handled_and_counted():
     s, u_law, r, u_max = _case(rng, u_max=1e12, k_a_dot=-1e5)
     lo, hi = _bounds(s)
     assert np.all(lo > hi)
-    r_f, act, infeasible, breach, assumptions = _run(s, u_law, r, u_max)
+    r_f, act, infeasible, breach, assumptions, _ = _run(s, u_law, r, u_max)
     assert infeasible[0] == 1 and assumptions[0] == 0 and breach[0] == 0
     np.testing.assert_allclose(_accel(s, u_law + r_f), 0.5 * (lo + hi), rtol=1e-7)
 
@@ -135,7 +158,7 @@ def test_it_is_offered_beside_the_barrier_filter_in_residual_and_plain_mode():
     env.reset(seed=0)
     for _ in range(30):
         _, _, _, trunc, info = env.step(np.ones(3, dtype=np.float32))
-    assert set(info["filter_outputs"]) == {"r_f", "active", "infeasible", "breach", "assumptions"}
+    assert set(info["filter_outputs"]) == {"r_f", "active", "infeasible", "breach", "assumptions", "handed_back"}
     np.testing.assert_allclose(info["u"], np.clip(info["u_law"] + info["filter_outputs"]["r_f"], -150, 150),
                                rtol=0, atol=1e-12)
     assert trunc and info["episode_metrics"]["filter_breaches"] == 0
@@ -164,6 +187,7 @@ def test_it_is_offered_beside_the_barrier_filter_in_residual_and_plain_mode():
 
 @pytest.mark.parametrize("kwargs, field", [({"gamma1": 0.0}, "gamma1"), ({"gamma2": float("inf")}, "gamma2"),
                                            ({"e2_max": -1.0}, "e2_max"), ({"noise_fraction": 1.0}, "noise_fraction"),
+                                           ({"handback": -1e-3}, "handback"),
                                            ({"gamma": 1.0}, "gamma")])
 def test_bad_parameters_are_refused_by_name(kwargs, field):
     with pytest.raises(ValueError, match=field):

@@ -28,12 +28,14 @@ torque = st.floats(-200.0, 200.0, allow_nan=False)
 vec3 = lambda s: st.lists(s, min_size=3, max_size=3).map(np.array)  # noqa: E731
 
 
-def _apply(r, u_law, z1, z2, ka, kb, p=P):
-    out = {k: np.zeros(3 if k == "r_f" else 1) for k in ("r_f", "theta", "beta", "breach", "assumptions")}
+def _apply(r, u_law, z1, z2, ka, kb, p=P, innovation=None):
+    out = {k: np.zeros(3 if k == "r_f" else 1) for k in ("r_f", "theta", "beta", "breach", "assumptions",
+                                                          "handed_back")}
     zeros = np.zeros(3)
-    barrier_apply(r, u_law, z1, z2, ka, kb, UMAX, p.beta_max, p.m0, p.m1, p.gain_max, p.e2_max, p.noise_fraction, CLIP,
-                  zeros, zeros, zeros, zeros, zeros, out["r_f"], out["theta"], out["beta"], out["breach"],
-                  out["assumptions"])
+    x1_hat = zeros if innovation is None else -np.asarray(innovation, dtype=float)  # y = 0, so y - x1_hat = innovation
+    barrier_apply(r, u_law, z1, z2, ka, kb, UMAX, p.beta_max, p.m0, p.m1, p.gain_max, p.e2_max, p.noise_fraction,
+                  p.handback, CLIP, zeros, zeros, zeros, zeros, x1_hat, zeros, out["r_f"], out["theta"], out["beta"],
+                  out["breach"], out["assumptions"], out["handed_back"])
     return out
 
 
@@ -95,8 +97,25 @@ def test_the_filter_scales_a_residual_that_would_raise_v2():
     np.testing.assert_array_equal(out["r_f"], [-20.0, 3.0, -3.0])
 
 
+def test_the_hand_back_gives_the_law_control_while_the_innovation_is_above_its_limit():
+    """The scaled case above: with the monitor at 3e-3 rad, an innovation of 2e-3 on every joint leaves
+    r_f as with the monitor off (bit for bit); 4e-3 on one joint zeroes it, and says so."""
+    z1, z2, r = np.zeros(3), np.array([10.0, 0.0, 0.0]), np.array([20.0, 3.0, -3.0])
+    on = BarrierFilterParams(handback=3e-3)
+    off = _apply(r, np.zeros(3), z1, z2, 0.1, 0.1)
+    below = _apply(r, np.zeros(3), z1, z2, 0.1, 0.1, on, innovation=[2e-3, -2e-3, 2e-3])
+    np.testing.assert_array_equal(below["r_f"], off["r_f"])
+    assert below["handed_back"][0] == 0.0 and off["handed_back"][0] == 0.0
+    above = _apply(r, np.zeros(3), z1, z2, 0.1, 0.1, on, innovation=[0.0, -4e-3, 0.0])
+    np.testing.assert_array_equal(above["r_f"], np.zeros(3))
+    assert above["handed_back"][0] == 1.0 and above["theta"][0] == 0.0 and above["breach"][0] == 0.0
+    # off (0) never hands back, whatever the innovation
+    assert _apply(r, np.zeros(3), z1, z2, 0.1, 0.1, innovation=[1.0, 1.0, 1.0])["handed_back"][0] == 0.0
+
+
 def test_bad_filter_parameters_are_refused():
     for kw, field in (({"m0": 0.6, "m1": 0.5}, "m0"), ({"beta_max": -1.0}, "beta_max"), ({"e2_max": 0.0}, "e2_max"),
+                      ({"handback": -1e-3}, "handback"),
                       ({"m0": float("nan")}, "m0"), ({"bogus": 1}, "bogus")):
         with pytest.raises(ValueError, match=field):
             barrier_filter(**kw)

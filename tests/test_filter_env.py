@@ -17,7 +17,7 @@ def test_the_residual_env_filters_and_reports_it():
     for _ in range(50):
         obs, r, term, trunc, info = env.step(np.ones(3, dtype=np.float32))
     fo = info["filter_outputs"]
-    assert set(fo) == {"r_f", "theta", "beta", "breach", "assumptions"}
+    assert set(fo) == {"r_f", "theta", "beta", "breach", "assumptions", "handed_back"}
     assert 0.0 <= fo["theta"][0] <= 1.0 and fo["breach"][0] == 0.0
     # the torque applied is the law's plus the filtered residual, never more than asked for
     assert np.all(np.abs(fo["r_f"]) <= 2.0 + 1e-12)

@@ -181,12 +181,25 @@ def test_it_keeps_active_output_constraints_on_the_nominal_plant():
 
 
 def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
-    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, **_NO_FRICTION), compiled=False)
+    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, retry_every=1, **_NO_FRICTION), compiled=False)
     errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
     rep = pol.report()
     assert rep["solves"] == 20 and rep["fallbacks"] == 20
     assert set(rep["statuses"]) == {"Maximum_Iterations_Exceeded"}
     assert np.all(np.isfinite(errs)) and np.abs(errs).max() < 0.2  # the computed-torque fallback holds it
+
+
+def test_while_the_fallback_acts_a_solve_is_tried_only_every_retry_every_samples():
+    """Every solve fails (one iteration): the samples 0, 5, 10, 15 try one and the others keep the
+    computed-torque fallback without one; every sample is still a fallback."""
+    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, retry_every=5, **_NO_FRICTION), compiled=False)
+    errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
+    rep = pol.report()
+    assert rep["samples"] == 20 and rep["solves"] == 4 and rep["fallbacks"] == 20
+    assert rep["statuses"] == {"Maximum_Iterations_Exceeded": 4, "Skipped_In_Fallback": 16}
+    assert np.all(np.isfinite(errs)) and np.abs(errs).max() < 0.2
+    with pytest.raises(ValueError, match="retry_every"):
+        NMPCParams(retry_every=0)
 
 
 def test_a_diverged_estimator_restarts_at_the_measured_angle_and_is_counted():
