@@ -429,9 +429,13 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     so the results' provenance, record it."""
     from blf_gym.registry import make_controller
 
-    if name != "none" and name not in make_controller("proposed").filters:
-        raise ValueError(f"--residual-filter must be 'none' or one of {sorted(make_controller('proposed').filters)}, "
-                         f"got {name!r}")
+    if name != "none":
+        try:
+            make_controller("proposed").make_filter(name)  # the name and its parameters, checked now
+        except ValueError as exc:
+            raise ValueError(f"--residual-filter must be 'none' or a filter of the proposed law "
+                             f"{sorted(make_controller('proposed').filters)}, optionally with parameters "
+                             f"('barrier:handback=0.0033'): {exc}") from None
     meta = json.loads(json.dumps(meta, default=str))
     kw = meta["env_kwargs"]
     had = kw.get("residual_filter")
@@ -514,9 +518,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="registered policies (the blf_gym.policies entry points, e.g. nmpc) to score like agents, "
                         "each with the env arguments it asks for (default: none; they can be slow)")
     p.add_argument("--residual-filter", default=None, metavar="NAME",
-                   help="run every agent through this residual filter of the proposed law (barrier or cbf), its name "
-                        "gaining +NAME, or 'none' to run every agent without one (default: each agent's own, "
-                        "from its metadata)")
+                   help="run every agent through this residual filter of the proposed law (barrier or cbf, with "
+                        "parameters as barrier:handback=0.0033), its name gaining +NAME, or 'none' to run every agent "
+                        "without one (default: each agent's own, from its metadata)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")
     p.add_argument("--suite", nargs="+", default=list(PROTOCOL_SEEDS), choices=SUITES, metavar="SUITE",

@@ -86,6 +86,7 @@ from .reference import REFERENCE_SIGNALS
 __all__ = [
     "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "ResidualFilter", "Connection", "connect", "mass_times",
     "mass_solve", "coriolis_times", "gravity", "nominal_acceleration", "nominal_length", "work_length", "units",
+    "parse_filter_spec",
 ]
 
 # ---------------------------------------------------------------------------------------------
@@ -422,17 +423,19 @@ class Controller(_PluginBase):
         return bool({"qd_true", "q_true"} & {*self._out_params, *self._upd_params})
 
     def make_filter(self, spec: "str | ResidualFilter | None") -> "ResidualFilter | None":
-        """The residual filter ``spec`` names (one of :attr:`filters`), or the object itself."""
+        """The residual filter ``spec`` names, or the object itself. A name is one of :attr:`filters`,
+        optionally with parameters, ``"barrier:handback=0.0033,m0=0.3"`` (:func:`parse_filter_spec`):
+        a string, so env arguments and results record it as given."""
         if spec is None or isinstance(spec, ResidualFilter):
             return spec
-        if not isinstance(spec, str) or spec not in self.filters:
+        name, kwargs = parse_filter_spec(spec)
+        if name not in self.filters:
             raise ValueError(f"residual_filter must be None or one of the filters shipped with {self.owner}, "
                              f"{sorted(self.filters)} (or a blf_gym.blocks.ResidualFilter), got {spec!r}")
-        f = self.filters[spec]()
+        f = self.filters[name](**kwargs)
         if not isinstance(f, ResidualFilter):
-            raise ValueError(f"{self.owner}: filter {spec!r} did not produce a blf_gym.blocks.ResidualFilter")
+            raise ValueError(f"{self.owner}: filter {name!r} did not produce a blf_gym.blocks.ResidualFilter")
         return f
-
 
     def initial(self, y0: np.ndarray) -> np.ndarray:
         n = y0.shape[0]
@@ -663,6 +666,26 @@ def _source_of(fn: Any) -> bytes:
         return inspect.getsource(py).encode()
     except (OSError, TypeError):
         return py.__code__.co_code
+
+
+def parse_filter_spec(spec: Any) -> tuple[str, dict[str, float]]:
+    """``"NAME"`` or ``"NAME:key=value,key=value"`` -> (NAME, {key: float(value)}): how a residual
+    filter is named with its parameters in env arguments and on the command line. ValueError names
+    the part that is not of that form."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise ValueError(f"residual_filter must be a filter's name, optionally 'NAME:key=value,...', got {spec!r}")
+    name, _, rest = spec.partition(":")
+    kwargs: dict[str, float] = {}
+    for part in filter(None, (p.strip() for p in rest.split(","))):
+        key, eq, value = part.partition("=")
+        try:
+            if not eq or not key.strip():
+                raise ValueError
+            kwargs[key.strip()] = float(value)
+        except ValueError:
+            raise ValueError(f"residual_filter {spec!r}: {part!r} is not key=number "
+                             "(the form is 'NAME:key=value,key=value')") from None
+    return name.strip(), kwargs
 
 
 _MAX_INLINE_ARGS = 30

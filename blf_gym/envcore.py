@@ -92,7 +92,8 @@ ARGUMENTS: tuple[Argument, ...] = (
              "None: the score reward; a dict: the shaped reward with those weights"),
     Argument("observation_extras", "-", "names of optional entries of blf_gym.observation.OBSERVATION",
              "optional observation entries appended after the others, in the order named"),
-    Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law',
+    Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law, optionally with '
+             'parameters ("barrier:handback=0.0033")',
              "a safety filter between the action and the actuator (residual mode: on the residual; plain mode: on "
              "the torque minus the proposed law's)"),
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",

@@ -36,6 +36,28 @@ def test_a_law_without_a_filter_refuses_the_option():
         gym.make("PlanarBLFResidual-v0", residual_filter=3)
 
 
+def test_a_filter_named_with_parameters_uses_them_and_bad_ones_are_refused():
+    """'barrier:handback=1e-9' hands control back at any innovation (the noise makes one), so r_f is 0
+    at every step and says so; a plain 'barrier' lets the same residual through. A parameter that is
+    not key=number, or that the filter refuses, is a ValueError naming it."""
+    outs = {}
+    for spec in ("barrier", "barrier:handback=1e-9"):
+        env = gym.make("PlanarBLFResidual-v0", residual_filter=spec, duration=0.2)
+        env.reset(seed=0)
+        for _ in range(20):
+            *_, info = env.step(np.ones(3, dtype=np.float32))
+        outs[spec] = info["filter_outputs"]
+    assert outs["barrier"]["handed_back"][0] == 0.0 and np.any(outs["barrier"]["r_f"] != 0.0)
+    assert outs["barrier:handback=1e-9"]["handed_back"][0] == 1.0
+    np.testing.assert_array_equal(outs["barrier:handback=1e-9"]["r_f"], np.zeros(3))
+    for spec, word in (("barrier:handback", "key=number"), ("barrier:handback=-1", "handback"),
+                       ("barrier:bogus=1", "bogus")):
+        with pytest.raises(ValueError, match=word):
+            gym.make("PlanarBLFResidual-v0", residual_filter=spec)
+    with pytest.raises(ValueError, match="residual-filter"):
+        with_filter({"name": "a", "env_kwargs": {}}, "cbf:gamma1=0")
+
+
 def test_in_plain_mode_it_is_a_safety_filter_around_any_policy():
     # a policy that commands no torque at all: the arm falls under gravity and leaves the bounds
     # within a few steps; through the filter the proposed law takes over as the margin shrinks

@@ -75,11 +75,16 @@ def nmpc_table() -> str:
     order = {g: i for i, g in enumerate(GROUPS)}
     recs = sorted(recs, key=lambda r: (order.get(r["scenario"], 9), r["policy"]))
     rep = next((r["policy_report"] for r in recs if r.get("policy_report")), None)
-    solver = "" if rep is None else (
-        f" The NMPC's solver over all {rep['solves']:,} samples of the run: median {rep['solve_ms_median']:.1f} ms, "
-        f"99th percentile {rep['solve_ms_p99']:.1f} ms, largest {rep['solve_ms_max']:.0f} ms per 10 ms sample "
-        f"(the estimator included); {rep['fallbacks']:,} fallbacks; IPOPT's statuses "
-        + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
+    solver = ""
+    if rep is not None:
+        samples = rep.get("samples", rep["solves"])  # older reports solved at every sample
+        skipped = samples - rep["solves"]
+        solver = (f" The NMPC over all {samples:,} samples of the run: {rep['solves']:,} solves"
+                  + (f" ({skipped:,} samples skipped while the fallback acted)" if skipped else "")
+                  + f", each median {rep['solve_ms_median']:.1f} ms, 99th percentile {rep['solve_ms_p99']:.1f} ms, "
+                  f"largest {rep['solve_ms_max']:.0f} ms per 10 ms sample (the estimator included); "
+                  f"{rep['fallbacks']:,} samples on the fallback; statuses "
+                  + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
     return (f"Written by `python docs/control/tables.py` from `docs/nmpc/results.json` (`{cmd}`, "
             "docs/nmpc/run.sh). Wall time per episode: the group's share of the batches' wall time over its "
             "episodes, the NMPC's two solver processes on this 2-core machine (docs/model.md section 15 says what else ran)." + solver + "\n\n"
