@@ -5,7 +5,9 @@
 
 A generated table sits between ``<!-- begin:NAME -->`` and ``<!-- end:NAME -->`` in its page and
 is made either from the code's own declarations (the env's arguments, observation, reward terms
-and info keys) or from a results file in ``docs/`` (never typed by hand). The control side's
+and info keys, the plug-in signals, the sweep file's keys, PPO-Lagrangian's hyperparameters) or
+from a results file in ``docs/`` (never typed by hand). A results table whose runs left no file in
+``docs/`` stays typed in its page, with a sentence under it saying so. The control side's
 pages are written whole by ``docs/control/tables.py``, which this command runs too.
 ``tests/test_docs_tables.py`` fails when anything here differs from what it would write.
 """
@@ -103,6 +105,11 @@ def _load(folder: str, name: str = "results.json") -> Any:
     import json
 
     return json.loads((DOCS / folder / name).read_text())
+
+
+def _text(folder: str, name: str) -> str:
+    """A results file that a command printed (not JSON), as text."""
+    return (DOCS / folder / name).read_text()
 
 
 def _rmse(v: float) -> str:
@@ -221,6 +228,320 @@ def reproduction_table() -> str:
     return "\n".join(out) + "\n"
 
 
+# ---------------------------------------------------------------------------------------------
+# docs/tuning.md: the residual agent's search
+
+_CURVE_GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized")
+"""The learning curve's groups (both presets and the held-out training-suite episodes), in table order."""
+
+
+def certificate_cases_table() -> str:
+    """The shipped certified agent on the 120 held-out certificate cases through each filter,
+    without and with the hand-back, beside the law alone, from ``docs/certificate_cases/*/results.json``
+    (``docs/certificate_cases/run.sh``)."""
+    out = ["| policy | filter | episodes | score_vs_law | violating samples | failure rate | "
+           "episodes breaking the certificate |", "|---|---|---|---|---|---|---|"]
+    law = None
+    rows = []
+    for path in sorted((DOCS / "certificate_cases").glob("*/results.json")):
+        for r in _load(f"certificate_cases/{path.parent.name}")["records"]:
+            if r["kind"] == "baseline":
+                law = r
+                continue
+            spec = r["env_kwargs"].get("residual_filter") or "none"
+            broken = round(r["certificate_broken"] * r["episodes"])
+            rows.append((spec, f"| {r['policy'].split('+')[0]} | `{spec}` | {r['episodes']} | {r['score_vs_law']:.3f} | "
+                               f"{sum(r['violations']):,} | {r['failure_rate']:.2f} | {broken} |"))
+    if law is None:
+        return "No results yet: `docs/certificate_cases/run.sh` writes them.\n"
+    if law is not None:
+        out.append(f"| proposed law alone | - | {law['episodes']} | 1.000 | {sum(law['violations']):,} | "
+                   f"{law['failure_rate']:.2f} | - |")
+    order = {"barrier": 0, "cbf": 2}
+    rows.sort(key=lambda x: (order.get(x[0].split(":")[0], 9), x[0]))
+    return "\n".join(out + [row for _, row in rows]) + "\n"
+
+
+def _triple(values: list[float], digits: int = 3) -> str:
+    return " ".join(f"{v:.{digits}f}" for v in values)
+
+
+def oracle_table() -> str:
+    """The disturbance oracle's RMSE over the law's, per control period and group, from
+    ``docs/tuning/oracle.txt`` (``python -m agents.oracle > docs/tuning/oracle.txt``; its defaults are
+    the periods 10, 5 and 2 ms and 4 held-out suite episodes)."""
+    ratios: dict[float, dict[str, str]] = {}
+    group = None
+    for line in _text("tuning", "oracle.txt").splitlines():
+        head = re.match(r"(\S+): law alone", line)
+        row = re.match(r"\s*oracle, control period\s+([\d.]+) ms: .* ratio ([\d. ]+)$", line)
+        if head:
+            group = head.group(1)
+        elif row:
+            ratios.setdefault(float(row.group(1)), {})[group] = row.group(2).strip()
+    out = ["| control period | 0.1 Hz j1 j2 j3 | 0.5 Hz j1 j2 j3 | suite j1 j2 j3 |", "|---|---|---|---|"]
+    for period, by_group in ratios.items():
+        out.append(f"| {period:g} ms | " + " | ".join(by_group[g] for g in _CURVE_GROUPS) + " |")
+    return "\n".join(out) + "\n"
+
+
+ROUND_NOTES = {
+    "ppo_t100_scale05": "residual_scale 0.5", "ppo_t100": "residual_scale 2",
+    "ppo_t100_normrew": "VecNormalize rewards", "ppo_t100_cp2ms": "control period 2 ms",
+    "ppo_t100_scale8": "residual_scale 8", "ppo_t100_cp5ms": "control period 5 ms",
+    "sac_t100_scale05": "{k}k steps, stopped", "sac_t100": "{k}k", "sac_t100_normrew": "{k}k",
+    "ppo_rel_scale8": "residual_scale 8", "ppo_rel_scale8_g95": "gamma 0.95", "ppo_rel": "residual_scale 2",
+    "ppo_rel_std3": "residual_scale 2, log_std_init -3", "ppo_rel_scale8_cp5ms": "5 ms",
+    "ppo_rel_scale8_sde": "gSDE exploration",
+}
+"""What a search run changed, shown after its name (``{k}``: its steps in thousands); the configs
+are in ``docs/tuning/configs/``."""
+
+
+def _round_table(*files: str) -> str:
+    """The runs of ``docs/tuning/<file>.json`` (one search round, as the first ``blf-tune`` wrote
+    ``OUT/tune.json``), each file's runs ranked by the geometric mean of their nine RMSE ratios to the
+    law. When the best run of the table beats the law on that mean, its name, each group where it
+    beats the law on all three joints, and the mean are in bold."""
+    runs = [r for f in files for r in sorted(_load("tuning", f"{f}.json")["rows"], key=lambda r: r["mean_ratio"])]
+    best = min(runs, key=lambda r: r["mean_ratio"])
+    bold = best["mean_ratio"] < 1
+    out = ["| run | RMSE / law, 0.1 Hz (j1 j2 j3) | 0.5 Hz | suite | geo-mean | worst |", "|---|---|---|---|---|---|"]
+    for r in runs:
+        mark = bold and r is best
+        note = ROUND_NOTES.get(r["run"], "").format(k=r["timesteps"] // 1000)
+        name = f"**{r['run']}**" if mark else r["run"]
+        cells = [f"{name} ({note})" if note else name]
+        for g in _CURVE_GROUPS:
+            text = _triple(r[g]["ratio"])
+            cells.append(f"**{text}**" if mark and max(r[g]["ratio"]) < 1 else text)
+        cells.append(f"**{r['mean_ratio']:.3f}**" if mark else f"{r['mean_ratio']:.3f}")
+        cells.append(f"{r['worst_ratio']:.3f}")
+        out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
+def tuning_round1_table() -> str:
+    """Round 1 (the env's absolute reward): PPO then SAC, from ``docs/tuning/round1_ppo.json`` and
+    ``round1_sac.json`` (``blf-tune`` over that round's configs in ``docs/tuning/configs/``,
+    ``--timesteps 300000`` for PPO, 100000 for SAC)."""
+    return _round_table("round1_ppo", "round1_sac")
+
+
+def tuning_round2_table() -> str:
+    """Round 2 (the reward measured against the law), from ``docs/tuning/round2_ppo_relative.json``
+    (``blf-tune`` over the ``ppo_rel*`` configs in ``docs/tuning/configs/``, ``--timesteps 300000``)."""
+    return _round_table("round2_ppo_relative")
+
+
+OBS_VARIANTS = (
+    ("ppo_final_privileged", "`privileged: true` (true velocity and disturbance added; not deployable)"),
+    ("ppo_final_no_obs_norm", "`normalize: false` (no observation normalization)"),
+)
+"""The observation variants of the final config: run folder under ``docs/tuning/obs/``, row label."""
+
+
+def observation_variants_table(steps: int = 300_000) -> str:
+    """Each observation variant's RMSE over the law's at its curve point of ``steps``, from
+    ``docs/tuning/obs/<run>/eval/curve.json`` (``blf-train --config docs/tuning/configs/<run>.yaml
+    --timesteps 1000000``, stopped after 300k steps); the law's RMSE on the same curve scenarios is
+    the ``law`` of ``docs/tuning/round1_ppo.json``."""
+    law = _load("tuning", "round1_ppo.json")["law"]
+    out = ["| variant | RMSE / law, 0.1 Hz (j1 j2 j3) | 0.5 Hz | suite |", "|---|---|---|---|"]
+    for run, label in OBS_VARIANTS:
+        points = _load(f"tuning/obs/{run}/eval", "curve.json")["points"]
+        p = next(q for q in points if q["timesteps"] == steps)
+        out.append(f"| {label} | " + " | ".join(_triple([a / b for a, b in zip(p[g]["rmse_deg"], law[g])])
+                                                for g in _CURVE_GROUPS) + " |")
+    return "\n".join(out) + "\n"
+
+
+# ---------------------------------------------------------------------------------------------
+# docs/budget.md, docs/sweeps.md, docs/plain_search.md, docs/lagrangian.md, docs/extending.md
+
+
+def lagrangian_presets_table() -> str:
+    """PPO-Lagrangian after its fix (seed 0, 3M steps) on both presets, from
+    ``docs/budget/lagrangian_s0_presets/results.json``
+    (``blf-eval --agents docs/budget/runs/ppo_lagrangian_s0 --suite-seeds 0 --out DIR``)."""
+    recs = _load("budget/lagrangian_s0_presets")["records"]
+    out = ["| preset | RMSE per joint (deg) | violating samples | diverged | score_vs_law |", "|---|---|---|---|---|"]
+    for g in ("paper-0.1hz", "paper-0.5hz"):
+        r = _pick(recs, "ppo_lagrangian_s0", g)
+        diverged = f"yes, first violation at {r['first_violation_s']:.3f} s" if r["diverged"] else "no"
+        out.append(f"| {GROUP_LABEL[g]} | {' / '.join(f'{v:.1f}' for v in r['rmse_deg'])} | "
+                   f"{sum(r['violations']):,} | {diverged} | {r['score_vs_law']:.3f} |")
+    return "\n".join(out) + "\n"
+
+
+SCALING_RUNS = (
+    ("c1", "local Ray", None),
+    ("c2", "local Ray", "speedup_c2_over_c1"),
+    ("cluster", "two-node cluster (`ray.cluster_utils.Cluster`, 1 CPU per node, both on 127.0.0.1)",
+     "speedup_cluster_over_c1"),
+)
+"""The scaling benchmark's three sweeps: key in its JSON, row label, key of the speed-up over ``c1``."""
+
+
+def sweep_scaling_table() -> str:
+    """One sweep of 8 short trials run three ways, from ``docs/sweeps/scaling.json``
+    (``python benchmarks/sweep_scaling.py --json docs/sweeps/scaling.json``)."""
+    res = _load("sweeps", "scaling.json")
+    out = ["| run | nodes | trials at once | wall time (8 trials) | speed-up |", "|---|---|---|---|---|"]
+    for key, label, speedup in SCALING_RUNS:
+        r = res[key]
+        out.append(f"| {label} | {r['nodes']} | {r['concurrency']} | {r['wall_s']:.1f} s | "
+                   f"{f'{res[speedup]:.2f}x' if speedup else '1'} |")
+    return "\n".join(out) + "\n"
+
+
+SWEEP_KEY_DOCS: dict[tuple[str, ...], tuple[str, str]] = {
+    ("name",): ("the sweep's name; runs are named `<name>-<config id>_s<seed>`", "the file's stem"),
+    ("base",): ("the `blf-train` config (a path, resolved next to the sweep file, then in `agents/configs/`)",
+                "`<algo>_<env id>.yaml`"),
+    ("algo", "mode", "controller", "observer", "scenario"):
+        ("`blf-train`'s options, any registered algorithm, controller or observer by name; `scenario: stress` "
+         "is refused", "ppo, residual, proposed, leso, randomized"),
+    ("timesteps",): ("the budget of every trial, in agent steps", "300000"),
+    ("seeds",): ("every configuration is trained once per seed", "`[0]`"),
+    ("search",): ("`grid`, `random` (Optuna's `RandomSampler`) or `optuna` (Optuna's `TPESampler`)", "grid"),
+    ("num_samples",): ("configurations to sample (random, optuna)", "required for them"),
+    ("search_seed",): ("the seed of the sampler, so the same file proposes the same configurations", "0"),
+    ("overrides",): ("fixed changes to the base config, by dotted key", "none"),
+    ("space",): ("the search space, by dotted key", "none"),
+    ("scheduler",): ("`{asha: {grace_period, reduction_factor, brackets}}`, in agent steps", "none"),
+    ("concurrency",): ("trials at the same time", "one per CPU of the cluster"),
+    ("time_budget_s",): ("wall-clock seconds for the whole sweep: Ray Tune stops every trial when they run out "
+                         "(status `budget`, ranked on its last curve point) and starts no more; a resume counts "
+                         "the seconds already spent (`OUT/budget.json`), so stopping and resuming never renews "
+                         "the budget", "none"),
+    ("note",): ("free text for the reader; a resume does not compare it", "none"),
+}
+"""What each key of a sweep file means and its default (keys that share a row are listed together)."""
+
+
+def sweep_keys_table() -> str:
+    """The keys a sweep file accepts, in the order of ``agents.sweep.SPEC_KEYS`` (the declaration
+    ``blf-sweep`` checks a file against), described by :data:`SWEEP_KEY_DOCS`."""
+    from agents.sweep import SPEC_KEYS
+
+    described = [k for keys in SWEEP_KEY_DOCS for k in keys]
+    if sorted(described) != sorted(SPEC_KEYS):
+        raise ValueError(f"SWEEP_KEY_DOCS describes {sorted(described)}; agents.sweep.SPEC_KEYS is {sorted(SPEC_KEYS)}")
+    out = ["| key | meaning | default |", "|---|---|---|"]
+    for keys in sorted(SWEEP_KEY_DOCS, key=lambda ks: SPEC_KEYS.index(ks[0])):
+        meaning, default = SWEEP_KEY_DOCS[keys]
+        out.append(f"| {', '.join(f'`{k}`' for k in keys)} | {meaning} | {default} |")
+    return "\n".join(out) + "\n"
+
+
+PLAIN_SWEEPS = ("ppo_lagrangian", "plain_ppo", "plain_sac", "plain_tqc")
+"""The sweeps of the plain and constrained learners, ``docs/sweeps/<name>.json``, in table order."""
+
+
+def plain_search_table() -> str:
+    """Budget, trials and best configuration of each sweep of :data:`PLAIN_SWEEPS`, from
+    ``docs/sweeps/<name>.json`` (``OUT/sweep.json`` of ``blf-sweep agents/configs/sweeps/<name>.yaml
+    --out OUT``; the PPO-Lagrangian grid's file is ``lagrangian.yaml``). Agent steps are each trial's
+    steps at its last curve point, summed."""
+    out = ["| algorithm | budget (s) | spent (s) | trials started | done / budget-stopped / pruned / error | "
+           "agent steps, all trials | best objective | best score_vs_law (0.1 Hz / 0.5 Hz / suite) | "
+           "failed curve episodes of the best | best configuration |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name in PLAIN_SWEEPS:
+        d = _load("sweeps", f"{name}.json")
+        n, best = d["counts"], d["configs"][0]
+        budget = d.get("time_budget_s")
+        spent = d.get("budget_used_s", d["wall_s"])
+        best_scores = {g: v["score"] for g, v in best["groups"].items()}
+        out.append(f"| {d['spec']['algo']} | {budget or '-'} | {spent:.0f} | {len(d['trials'])} | "
+                   f"{' / '.join(str(n.get(k, 0)) for k in ('done', 'budget', 'pruned', 'error'))} | "
+                   f"{sum(t['timesteps'] for t in d['trials']):,} | {best['objective']:.4f} | "
+                   f"{' / '.join(f'{best_scores[g]:.3f}' for g in _CURVE_GROUPS)} | "
+                   f"{best['failed_episodes']} | {', '.join(f'{k}={v}' for k, v in sorted(best['params'].items()))} |")
+    return "\n".join(out) + "\n"
+
+
+LAGRANGIAN_HYPERPARAMETERS = {
+    "cost_limit": ("allowed cost per episode, in cost units (PlanarBLF: violating control steps)", "finite, >= 0"),
+    "lagrangian_lr": ("lambda's step per unit of excess episode cost",
+                      "finite, >= 0 (0: a fixed penalty `lagrangian_init`)"),
+    "lagrangian_init": ("lambda at the start", "finite, >= 0"),
+}
+"""What each of PPO-Lagrangian's own hyperparameters means and accepts."""
+
+
+def lagrangian_hyperparameters_table() -> str:
+    """PPO-Lagrangian's own hyperparameters with their defaults, in the order of
+    ``PPOLagrangian.__init__`` in ``agents/lagrangian.py`` (read from its source, so that torch is
+    not imported), described by :data:`LAGRANGIAN_HYPERPARAMETERS`."""
+    import ast
+
+    source = (ROOT / "agents" / "lagrangian.py").read_text()
+    cls = next(n for n in ast.parse(source).body if isinstance(n, ast.ClassDef) and n.name == "PPOLagrangian")
+    init = next(n for n in cls.body if isinstance(n, ast.FunctionDef) and n.name == "__init__")
+    named = init.args.args[len(init.args.args) - len(init.args.defaults):]
+    defaults = {a.arg: ast.get_source_segment(source, d) for a, d in zip(named, init.args.defaults)
+                if not a.arg.startswith("_")}
+    if sorted(defaults) != sorted(LAGRANGIAN_HYPERPARAMETERS):
+        raise ValueError(f"PPOLagrangian takes {sorted(defaults)}; LAGRANGIAN_HYPERPARAMETERS describes "
+                         f"{sorted(LAGRANGIAN_HYPERPARAMETERS)}")
+    out = ["| name | meaning | accepted | default |", "|---|---|---|---|"]
+    for name, default in defaults.items():
+        meaning, accepted = LAGRANGIAN_HYPERPARAMETERS[name]
+        out.append(f"| `{name}` | {meaning} | {accepted} | {default.removesuffix('.0')} |")
+    return "\n".join(out) + "\n"
+
+
+SIGNAL_ROWS = (
+    (("t",), "time"),
+    (("y",), "measured joint angles (true angles plus measurement noise)"),
+    (("qd_true", "q_true"),
+     "true joint velocities and angles: a full-state law (results say so), or a filter's monitor"),
+    (("u_max",), "the actuator's torque limit"),
+    (("q_d", "qd_d", "qdd_d"), "the joint reference and its derivatives"),
+    (("k_a", "k_a_dot", "k_a_ddot"), "the upper error bound and its rates"),
+    (("k_b", "k_b_dot", "k_b_ddot"), "the lower bound: the error stays in (-k_b, k_a)"),
+    (("nominal",), "the nominal model at `y`, for the operators below"),
+    (("work",), "scratch, undefined on entry"),
+)
+"""The signals every plug-in may read (``blf_gym.blocks.BASE_SIGNALS``), grouped into rows, with
+what each row is; sizes and units come from the declaration."""
+
+BLOCK_SIGNAL_ROWS = (
+    "| observer states | declared | declared | e.g. the LESO's `x1_hat`, `x2_hat`, `x3_hat` |",
+    "| controller outputs | declared | declared | `u_law` and any extras (after `Controller.output`) |",
+    "| `u` | n | N m | the commanded torque: law + residual, after the limit, before the dead-zone "
+    "(after `Controller.output`) |",
+    "| own parameters | field | field | each numeric field of the block's parameter dataclass, by name |",
+    "| own states, `state` | declared | declared | the block's states by name, or all of them |",
+)
+"""The signals that depend on the blocks of the loop, after the base ones."""
+
+
+def signals_table() -> str:
+    """The signals a plug-in function may read: the base signals from
+    ``blf_gym.blocks.BASE_SIGNALS`` (size and unit), grouped by :data:`SIGNAL_ROWS`, then
+    :data:`BLOCK_SIGNAL_ROWS`."""
+    from blf_gym.blocks import BASE_SIGNALS, work_length
+
+    listed = [k for names, _ in SIGNAL_ROWS for k in names]
+    if sorted(listed) != sorted(BASE_SIGNALS):
+        raise ValueError(f"SIGNAL_ROWS lists {sorted(listed)}; BASE_SIGNALS declares {sorted(BASE_SIGNALS)}")
+    if any(work_length.py_func(n) != 2 * n * n + 12 * n for n in (1, 2, 3, 7)):
+        raise ValueError("blf_gym.blocks.work_length is no longer 2n^2 + 12n: update signals_table")
+    size_text = {"model": "-", "work": "2n^2 + 12n"}
+    out = ["| signal | size | unit | what |", "|---|---|---|---|"]
+    for names, what in SIGNAL_ROWS:
+        sizes = {BASE_SIGNALS[k][0] for k in names}
+        if len(sizes) != 1:
+            raise ValueError(f"the signals {names} of one row have different sizes {sorted(sizes)}")
+        size = sizes.pop()
+        out.append(f"| {', '.join(f'`{k}`' for k in names)} | {size_text.get(size, size)} | "
+                   f"{', '.join(BASE_SIGNALS[k][1] for k in names)} | {what} |")
+    out.extend(BLOCK_SIGNAL_ROWS)
+    return "\n".join(out) + "\n"
+
+
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/")},
     "docs/reproduction.md": {"reproduction": reproduction_table},
@@ -240,6 +561,18 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
         "env-reward-terms": _env("reward_terms_table"),
         "env-info": _env("info_table"),
     },
+    "docs/tuning.md": {
+        "oracle": oracle_table,
+        "round1": tuning_round1_table,
+        "round2": tuning_round2_table,
+        "observation-variants": observation_variants_table,
+    },
+    "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table},
+    "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
+    "docs/plain_search.md": {"searches": plain_search_table},
+    "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},
+    "docs/extending.md": {"signals": signals_table},
+    "docs/certificate.md": {"certificate-cases": certificate_cases_table},
 }
 """Page (from the repository's root) -> marker name -> the function that writes its table."""
 
