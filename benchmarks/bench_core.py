@@ -7,8 +7,10 @@ Prints medians over repeated runs, measured in this run on this machine, beside 
 * target 2: ``blf-reproduce`` for all six cases <= 3 s of wall time, process start included,
   with a warm compilation cache.
 
-Run:  python benchmarks/bench_core.py [--repeats 5]
+Run:  python benchmarks/bench_core.py [--repeats 5] [--json docs/speed/core.json]
 The first run also compiles (cached to disk); that time is reported separately, not in the medians.
+``--json FILE`` adds this run's figures to FILE (``benchmarks/results_json.py``), from which
+``python docs/tables.py`` writes the table of docs/speed.md.
 """
 
 from __future__ import annotations
@@ -53,16 +55,24 @@ def _reproduce_wall_s(repeats: int) -> tuple[float, list[float]]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="also add this run's figures to FILE (e.g. docs/speed/core.json)")
     args = ap.parse_args()
+    import results_json
+
+    start = results_json.context()
 
     t0 = time.perf_counter()
     import blf_gym.simulate  # noqa: F401
 
-    print(f"import blf_gym.simulate: {time.perf_counter() - t0:.2f} s")
+    import_s = time.perf_counter() - t0
+    print(f"import blf_gym.simulate: {import_s:.2f} s")
+    step_us, step_us_runs = {}, {}
     print("\nclosed-loop step, 30 s run in one compiled call (median of "
           f"{args.repeats}):")
     for ctrl in ("none", "bc", "lesobc", "proposed"):
         med, all_t = _closed_loop_step_us(ctrl, args.repeats)
+        step_us[ctrl], step_us_runs[ctrl] = med, all_t
         extra = ""
         if ctrl == "proposed":
             extra = f"   target <= 0.80 us  ratio {med / 0.8:.2f}x"
@@ -72,6 +82,10 @@ def main() -> None:
     print(f"\nblf-reproduce, six cases, process start included (median of {args.repeats}): "
           f"{med:.2f} s   target <= 3.00 s  ratio {med / 3.0:.2f}x")
     print(f"  runs: {', '.join(f'{v:.2f}' for v in all_t)}")
+    if args.json:
+        results_json.add_run(args.json, "benchmarks/bench_core.py", {
+            "repeats": args.repeats, "import_s": import_s, "step_us": step_us, "step_us_runs": step_us_runs,
+            "reproduce_s": med, "reproduce_s_runs": all_t}, start)
 
 
 if __name__ == "__main__":

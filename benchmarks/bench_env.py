@@ -4,7 +4,9 @@ Prints medians measured in this run, beside Gymnasium's Pendulum-v1 measured in 
 the targets: residual ``env.step`` (10 ms simulated = 100 closed-loop steps) <= 100 us median;
 vector env in residual mode >= 15,000 agent steps/s at N = 64.
 
-Run:  python benchmarks/bench_env.py [--steps 2000]
+Run:  python benchmarks/bench_env.py [--steps 2000] [--json docs/speed/env.json]
+``--json FILE`` adds this run's figures to FILE (``benchmarks/results_json.py``), from which
+``python docs/tables.py`` writes the table of docs/speed.md.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -68,7 +71,12 @@ def _vector_rate(num_envs: int, steps: int, threads: int | None) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--steps", type=int, default=2000)
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="also add this run's figures to FILE (e.g. docs/speed/env.json)")
     args = ap.parse_args()
+    import results_json
+
+    start = results_json.context()
     pend = env_step_us("Pendulum-v1", args.steps)
     plain = env_step_us("PlanarBLF-v0", args.steps)
     resid = env_step_us("PlanarBLFResidual-v0", args.steps)
@@ -87,13 +95,21 @@ def main() -> None:
     print(f"  residual, fresh processes: unfiltered {u:8.1f} us, barrier filter {f:8.1f} us   ({f / u:.3f}x; "
           f"target <= 1.10x)")
     print("\nvector env, residual mode, agent steps per second (median step):")
+    rates = []
     for n in (1, 16, 64):
         for threads in (1, 2):
             if n == 1 and threads == 2:
                 continue
             rate = _vector_rate(n, max(20, args.steps // (4 * n)), threads)
+            rates.append({"num_envs": n, "threads": threads, "steps_per_s": rate})
             tgt = f"   target >= 15000  ratio {rate / 15000:.2f}x" if n == 64 else ""
             print(f"  N = {n:3d}  threads = {threads}  {rate:9.0f} /s{tgt}")
+    if args.json:
+        results_json.add_run(args.json, "benchmarks/bench_env.py", {
+            "steps": args.steps,
+            "env_step_us": {"Pendulum-v1": pend, "PlanarBLF-v0": plain, "PlanarBLFResidual-v0": resid},
+            "fresh_process_residual_us": {"unfiltered": unf, "barrier": filt},
+            "vector": rates}, start)
 
 
 if __name__ == "__main__":

@@ -9,8 +9,10 @@ is timed twice: wall time, and the calling thread's CPU time, which leaves out t
 operating system gave the core to another process (on this shared 2-core machine, one reset in
 tens of thousands waits that way for several milliseconds).
 
-Run:  python benchmarks/bench_resets.py [--seconds 15] [--no-gc]
+Run:  python benchmarks/bench_resets.py [--seconds 15] [--no-gc] [--json docs/speed/resets.json]
 ``--no-gc`` turns Python's cyclic garbage collector off, to tell its pauses from the env's own cost.
+``--json FILE`` adds this run's figures to FILE (``benchmarks/results_json.py``), from which
+``python docs/tables.py`` writes the table of docs/speed.md.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import argparse
 import gc
 import time
+from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
@@ -30,7 +33,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seconds", type=float, default=15.0)
     ap.add_argument("--no-gc", action="store_true")
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="also add this run's figures to FILE (e.g. docs/speed/resets.json)")
     args = ap.parse_args()
+    import results_json
+
+    start = results_json.context()
     if args.no_gc:
         gc.disable()
     step = env_step_us("PlanarBLFResidual-v0", 1500, scenario="randomized") / 1e6
@@ -62,6 +70,15 @@ def main() -> None:
           + ("   [garbage collector off]" if args.no_gc else ""))
     print(f"reset, CPU time of the calling thread: median {np.median(c) * 1e3:.2f} ms, p99 "
           f"{np.percentile(c, 99) * 1e3:.2f} ms, max {c.max() * 1e3:.2f} ms ({c.max() / step:.1f} steps)")
+    if args.json:
+        def stats(x: np.ndarray) -> dict[str, float]:
+            return {"median": float(np.median(x)) * 1e3, "p99": float(np.percentile(x, 99)) * 1e3,
+                    "max": float(x.max()) * 1e3}
+
+        results_json.add_run(args.json, "benchmarks/bench_resets.py", {
+            "seconds": args.seconds, "gc": not args.no_gc, "residual_step_us": step * 1e6,
+            "steps_per_s": steps / wall, "steps": steps, "resets": len(r),
+            "reset_ms": stats(r), "reset_cpu_ms": stats(c)}, start)
 
 
 if __name__ == "__main__":

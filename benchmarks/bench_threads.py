@@ -2,7 +2,9 @@
 loop (the native vector env, a torch MLP acting every step and a gradient step on each batch) for
 several (env threads, torch threads) pairs, each in its own process, medians over rounds.
 
-Run:  python benchmarks/bench_threads.py [--rounds 3] [--num-envs 8]
+Run:  python benchmarks/bench_threads.py [--rounds 3] [--num-envs 8] [--json docs/speed/threads.json]
+``--json FILE`` writes every round and the medians to FILE (``benchmarks/results_json.py``), from
+which ``python docs/tables.py`` writes the threads table of docs/conventions.md.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ import os
 import statistics
 import subprocess
 import sys
+from pathlib import Path
 
 _PROBE = r"""
 import json, sys, time
@@ -50,7 +53,12 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--num-envs", type=int, default=8)
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="also write the rounds and medians to FILE (e.g. docs/speed/threads.json)")
     args = ap.parse_args()
+    import results_json
+
+    start = results_json.context()
     pairs = [("default", "default"), ("2", "default"), ("1", "default"), ("1", "1"), ("2", "1")]
     res = {p: [] for p in pairs}
     info = {}
@@ -65,6 +73,12 @@ def main() -> int:
     for p in pairs:
         print(f"  env threads {p[0]:>7s} -> {info[p][0]}, torch threads {p[1]:>7s} -> {info[p][1]}: "
               f"{statistics.median(res[p]):8.0f}")
+    if args.json:
+        results_json.write(args.json, "benchmarks/bench_threads.py", {
+            "rounds": args.rounds, "num_envs": args.num_envs,
+            "pairs": [{"env_threads": p[0], "torch_threads": p[1], "env_threads_used": info[p][0],
+                       "torch_threads_used": info[p][1], "steps_per_s": statistics.median(res[p]),
+                       "rounds_steps_per_s": res[p]} for p in pairs]}, start)
     return 0
 
 

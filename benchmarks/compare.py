@@ -15,8 +15,11 @@ compared. Three figures, each the median within its process:
   scenarios with measurement noise on, on one thread (100-step calls, the env's control period),
   in blocks of 4 lanes where the tree has them.
 
-Run:  python benchmarks/compare.py BASE_TREE NEW_TREE [--rounds 5]
+Run:  python benchmarks/compare.py BASE_TREE NEW_TREE [--rounds 5] [--json docs/speed/compare.json]
 e.g.  git worktree add /tmp/base HEAD~1 && python benchmarks/compare.py /tmp/base .
+``--json FILE`` writes every round, the medians and each tree's commit to FILE
+(``benchmarks/results_json.py``), from which ``python docs/tables.py`` writes the comparison
+table of docs/speed.md.
 
 Each tree compiles its own kernels on first use (numba's cache lives next to its sources); a
 warm-up round that is not counted does that.
@@ -107,7 +110,12 @@ def main() -> None:
     ap.add_argument("base", type=Path, help="the reference tree (e.g. a worktree of the previous commit)")
     ap.add_argument("new", type=Path, help="the tree under test")
     ap.add_argument("--rounds", type=int, default=5, help="interleaved rounds counted (default 5)")
+    ap.add_argument("--json", type=Path, default=None, metavar="FILE",
+                    help="also write the rounds and medians to FILE (e.g. docs/speed/compare.json)")
     args = ap.parse_args()
+    import results_json
+
+    start = results_json.context()
     trees = {"base": args.base.resolve(), "new": args.new.resolve()}
     for t in trees.values():
         _measure(t)  # warm-up: compile or load the kernels
@@ -118,11 +126,18 @@ def main() -> None:
             print(f"round {r + 1} {name}: " + ", ".join(f"{k} {v:.3f}" for k, v in runs[name][-1].items()),
                   flush=True)
     print(f"\nmedians of {args.rounds} interleaved rounds (lower is better for us, higher for /s):")
+    medians: dict[str, dict[str, float]] = {"base": {}, "new": {}}
     for key, unit, better in (("step_us", "us", "lower"), ("env_us", "us", "lower"), ("vec64", "/s", "higher"),
                               ("batch64_us", "us", "lower")):
         b = statistics.median(x[key] for x in runs["base"])
         n = statistics.median(x[key] for x in runs["new"])
+        medians["base"][key], medians["new"][key] = b, n
         print(f"  {key:<8} base {b:10.3f} {unit}   new {n:10.3f} {unit}   new/base {n / b:.3f} ({better} is better)")
+    if args.json:
+        results_json.write(args.json, "benchmarks/compare.py", {
+            "rounds": args.rounds,
+            "trees": {name: {"path": str(t), "commit": results_json.commit(t)} for name, t in trees.items()},
+            "medians": medians, "runs": runs}, start)
 
 
 if __name__ == "__main__":

@@ -7,8 +7,11 @@ A generated table sits between ``<!-- begin:NAME -->`` and ``<!-- end:NAME -->``
 is made either from the code's own declarations (the env's arguments, observation, reward terms
 and info keys, the plug-in signals, the sweep file's keys, PPO-Lagrangian's hyperparameters) or
 from a results file in ``docs/`` (never typed by hand). A results table whose runs left no file in
-``docs/`` stays typed in its page, with a sentence under it saying so. The control side's
-pages are written whole by ``docs/control/tables.py``, which this command runs too.
+``docs/`` stays typed in its page, with a sentence under it saying so. The benchmark tables of
+docs/speed.md and docs/conventions.md become generated once the benchmarks' ``--json`` files exist
+in ``docs/speed/`` (:data:`MEASURED_BLOCKS`; the pages give the commands); until then they stay
+typed. The control side's pages are written whole by ``docs/control/tables.py``, which this
+command runs too.
 ``tests/test_docs_tables.py`` fails when anything here differs from what it would write.
 """
 
@@ -334,6 +337,9 @@ def tuning_round2_table() -> str:
     return _round_table("round2_ppo_relative")
 
 
+FINAL_SEEDS_300K = ("ppo_residual_s0", "ppo_residual_s1", "ppo_residual_s2")
+"""The first release's three final seeds: run folders under ``docs/tuning/final_300k/``."""
+
 OBS_VARIANTS = (
     ("ppo_final_privileged", "`privileged: true` (true velocity and disturbance added; not deployable)"),
     ("ppo_final_no_obs_norm", "`normalize: false` (no observation normalization)"),
@@ -341,18 +347,28 @@ OBS_VARIANTS = (
 """The observation variants of the final config: run folder under ``docs/tuning/obs/``, row label."""
 
 
+def _ratios_at(folder: str, steps: int, law: dict) -> list[list[float]]:
+    """A run's RMSE over the law's per group of :data:`_CURVE_GROUPS`, at its curve point of
+    ``steps`` (``docs/<folder>/eval/curve.json``)."""
+    p = next(q for q in _load(f"{folder}/eval", "curve.json")["points"] if q["timesteps"] == steps)
+    return [[a / b for a, b in zip(p[g]["rmse_deg"], law[g])] for g in _CURVE_GROUPS]
+
+
 def observation_variants_table(steps: int = 300_000) -> str:
-    """Each observation variant's RMSE over the law's at its curve point of ``steps``, from
-    ``docs/tuning/obs/<run>/eval/curve.json`` (``blf-train --config docs/tuning/configs/<run>.yaml
-    --timesteps 1000000``, stopped after 300k steps); the law's RMSE on the same curve scenarios is
-    the ``law`` of ``docs/tuning/round1_ppo.json``."""
+    """The final config's three seeds, then each observation variant, as RMSE over the law's at
+    their curve point of ``steps``. The seeds' curves are ``docs/tuning/final_300k/<run>/eval/curve.json``
+    (the first release's final runs, ``blf-train`` with the final config, 1M steps; restored from
+    commit c6754a8's ``docs/curves/``); the variants' are ``docs/tuning/obs/<run>/eval/curve.json``
+    (``blf-train --config docs/tuning/configs/<run>.yaml --timesteps 1000000``, stopped after 300k
+    steps). The law's RMSE on the same curve scenarios is the ``law`` of ``docs/tuning/round1_ppo.json``.
+    The seeds' ratios have two decimals (three runs share a cell, as first printed), the variants' three."""
     law = _load("tuning", "round1_ppo.json")["law"]
     out = ["| variant | RMSE / law, 0.1 Hz (j1 j2 j3) | 0.5 Hz | suite |", "|---|---|---|---|"]
+    seeds = [_ratios_at(f"tuning/final_300k/{run}", steps, law) for run in FINAL_SEEDS_300K]
+    out.append(f"| final config, seeds 0 / 1 / 2 at {steps // 1000}k | "
+               + " | ".join(" / ".join(_triple(s[i], 2) for s in seeds) for i in range(len(_CURVE_GROUPS))) + " |")
     for run, label in OBS_VARIANTS:
-        points = _load(f"tuning/obs/{run}/eval", "curve.json")["points"]
-        p = next(q for q in points if q["timesteps"] == steps)
-        out.append(f"| {label} | " + " | ".join(_triple([a / b for a, b in zip(p[g]["rmse_deg"], law[g])])
-                                                for g in _CURVE_GROUPS) + " |")
+        out.append(f"| {label} | " + " | ".join(_triple(r) for r in _ratios_at(f"tuning/obs/{run}", steps, law)) + " |")
     return "\n".join(out) + "\n"
 
 
@@ -542,6 +558,136 @@ def signals_table() -> str:
     return "\n".join(out) + "\n"
 
 
+# ---------------------------------------------------------------------------------------------
+# docs/speed.md, docs/conventions.md: benchmark measurements, from the benchmarks' --json files
+# in docs/speed/ (benchmarks/results_json.py). A table is generated only once its files exist.
+
+
+def _span(values: list[float], fmt: Callable[[float], str]) -> str:
+    """``values`` as ``lo-hi`` (one figure when both print the same), each formatted by ``fmt``."""
+    lo, hi = fmt(min(values)), fmt(max(values))
+    return lo if lo == hi else f"{lo}-{hi}"
+
+
+def _dec(digits: int) -> Callable[[float], str]:
+    return lambda v: f"{v:,.{digits}f}"
+
+
+def _hundreds(v: float) -> str:
+    return f"{round(v, -2):,.0f}"
+
+
+def _measured(doc: dict) -> str:
+    """Where and when a benchmark file was measured, for the line under its table."""
+    load = doc["load_avg"][0] if doc.get("load_avg") else "unknown"
+    return (f"on {doc['date'][:10]} at commit {doc['commit']}, {doc['cpus']} CPUs, "
+            f"1-minute load average {load} at the start")
+
+
+def _resets_cell(runs: list[dict]) -> str:
+    """``bench_resets.py``'s runs: the loop's rate and a reset's median, p99 and worst, in ms and in
+    residual steps; the worst again from the runs with the garbage collector off, if any."""
+    on, off = [r for r in runs if r["gc"]], [r for r in runs if not r["gc"]]
+    if not on:
+        raise ValueError("docs/speed/resets.json has no run with Python's garbage collector on")
+
+    def reset(runs: list[dict], stat: str) -> str:
+        ms = _span([r["reset_ms"][stat] for r in runs], _dec(2))
+        steps = _span([r["reset_ms"][stat] / (r["residual_step_us"] / 1e3) for r in runs], _dec(1))
+        return f"{ms} ms ({steps} steps)"
+
+    text = (f"{_span([r['steps_per_s'] for r in on], lambda v: f'{round(v, -1):,.0f}')} steps/s, episodes of "
+            f"{_span([r['steps'] / r['resets'] for r in on], _dec(1))} steps; a reset's median {reset(on, 'median')}, "
+            f"p99 {reset(on, 'p99')}, the worst of a run ({_span([r['resets'] for r in on], _dec(0))} resets) "
+            f"{reset(on, 'max')}")
+    if off:
+        text += (f"; with Python's garbage collector off (`--no-gc`), the worst {reset(off, 'max')}, "
+                 f"{_span([r['reset_cpu_ms']['max'] for r in off], _dec(2))} ms of the thread's own CPU time")
+    return text
+
+
+def speed_table() -> str:
+    """The headline speeds beside their targets, as the range of each figure's median over separate
+    runs, from ``docs/speed/core.json``, ``env.json`` and ``resets.json`` (each run of
+    ``python benchmarks/bench_core.py --json docs/speed/core.json``, ``bench_env.py --json
+    docs/speed/env.json`` and ``bench_resets.py [--no-gc] --json docs/speed/resets.json`` adds one)."""
+    core, env = _load("speed", "core.json")["runs"], _load("speed", "env.json")["runs"]
+    resets = _load("speed", "resets.json")["runs"]
+
+    def step(ctrl: str) -> str:
+        return _span([r["step_us"][ctrl] for r in core], _dec(2))
+
+    def env_us(env_id: str) -> str:
+        return _span([r["env_step_us"][env_id] for r in env], _dec(0))
+
+    def rate(n: int, threads: int) -> str:
+        return _span([next(v["steps_per_s"] for v in r["vector"] if (v["num_envs"], v["threads"]) == (n, threads))
+                      for r in env], _hundreds)
+
+    rows = [
+        ("one closed-loop step (plant + LESO + proposed law, 3 ODE3 stages), amortized over a 30 s run",
+         f"{step('proposed')} us (BC {step('bc')}, LESOBC {step('lesobc')}, no law {step('none')})", "<= 0.8 us"),
+        ("`blf-reproduce`, six cases, process start included, warm cache",
+         f"{_span([r['reproduce_s'] for r in core], _dec(1))} s", "<= 3 s"),
+        ("residual `env.step` through `gym.make` (100 integration steps)",
+         f"{env_us('PlanarBLFResidual-v0')} us (plain {env_us('PlanarBLF-v0')} us; Pendulum-v1: "
+         f"{env_us('Pendulum-v1')} us)", "<= 100 us"),
+        ("vector env, residual, N = 64", f"{rate(64, 2)} agent steps/s on 2 threads ({rate(64, 1)} on 1)", ">= 15,000"),
+        ("plain `PlanarBLF-v0`, training suite, random actions, default reward (`benchmarks/bench_resets.py`; "
+         "episodes end at a violation, so mostly resets)", _resets_cell(resets),
+         ">= 1,000 steps/s, no reset over 20 steps"),
+    ]
+    out = ["| what | measured | target |", "|---|---|---|"] + [f"| {a} | {b} | {c} |" for a, b, c in rows]
+    runs = "; ".join(f"`{script}` {len(r)} run{'s' if len(r) > 1 else ''}, the last {_measured(r[-1])}"
+                     for script, r in (("bench_core.py", core), ("bench_env.py", env), ("bench_resets.py", resets)))
+    return "\n".join(out) + f"\n\nRanges of the medians over separate runs: {runs}.\n"
+
+
+COMPARE_ROWS = (
+    ("step_us", "closed-loop step (proposed + LESO), one arm, no noise", " us", 3),
+    ("batch64_us", "one step per arm, 64 mixed training-suite arms with noise, 1 thread", " us", 3),
+    ("env_us", "residual `env.step`", " us", 1),
+    ("vec64", "vector env, residual, N = 64, 2 threads", " /s", 0),
+)
+"""``benchmarks/compare.py``'s figures in table order: key, row label, unit, decimals."""
+
+
+def compare_table() -> str:
+    """Two trees measured in interleaved rounds, medians and the range over rounds, from
+    ``docs/speed/compare.json`` (``python benchmarks/compare.py BASE_TREE . --json docs/speed/compare.json``)."""
+    d = _load("speed", "compare.json")
+    commits = {k: d["trees"][k]["commit"] or d["trees"][k]["path"] for k in ("base", "new")}
+    out = [f"| what | base ({commits['base']}) | new ({commits['new']}) | new / base | over rounds, base; new |",
+           "|---|---|---|---|---|"]
+    for key, label, unit, digits in COMPARE_ROWS:
+        b, n = d["medians"]["base"][key], d["medians"]["new"][key]
+        spans = "; ".join(_span([r[key] for r in d["runs"][t]], _dec(digits)) for t in ("base", "new"))
+        out.append(f"| {label} | {b:,.{digits}f}{unit} | {n:,.{digits}f}{unit} | {n / b:.2f}"
+                   f"{' (speed)' if key == 'vec64' else ''} | {spans}{unit} |")
+    return "\n".join(out) + f"\n\nMedians of {d['rounds']} interleaved rounds, {_measured(d)}.\n"
+
+
+def threads_table() -> str:
+    """A CleanRL-style loop's agent steps per second for pairs of env and torch threads, medians over
+    rounds, from ``docs/speed/threads.json`` (``python benchmarks/bench_threads.py --json
+    docs/speed/threads.json``)."""
+    d = _load("speed", "threads.json")
+    out = ["| env threads | torch threads | agent steps/s |", "|---|---|---|"]
+    for p in d["pairs"]:
+        env = f"{p['env_threads_used']}" + (" (the default)" if p["env_threads"] == "default" else "")
+        torch = f"{p['torch_threads_used']}" + (" (torch's default)" if p["torch_threads"] == "default" else "")
+        out.append(f"| {env} | {torch} | {p['steps_per_s']:,.0f} |")
+    return "\n".join(out) + f"\n\n{d['num_envs']} arms, medians of {d['rounds']} rounds, {_measured(d)}.\n"
+
+
+MEASURED_BLOCKS = (
+    ("docs/speed.md", "speed", ("core", "env", "resets"), speed_table),
+    ("docs/speed.md", "speed-compare", ("compare",), compare_table),
+    ("docs/conventions.md", "threads", ("threads",), threads_table),
+)
+"""The benchmark tables: page, marker name, the files under ``docs/speed/`` it needs, the function."""
+
+
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/")},
     "docs/reproduction.md": {"reproduction": reproduction_table},
@@ -575,6 +721,10 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/certificate.md": {"certificate-cases": certificate_cases_table},
 }
 """Page (from the repository's root) -> marker name -> the function that writes its table."""
+
+for _page, _name, _files, _make in MEASURED_BLOCKS:
+    if all((DOCS / "speed" / f"{f}.json").is_file() for f in _files):  # until then the table stays typed
+        BLOCKS.setdefault(_page, {})[_name] = _make
 
 
 def fill(text: str, name: str, content: str, where: str = "") -> str:
