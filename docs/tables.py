@@ -60,6 +60,7 @@ HEADLINE = (
      "ppo_residual_certified", "results.md"),
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
+    ("plain PPO at 50M steps (sbx, seed 0 of 3)", "learning", "budget/protocol_s0", "sbx_ppo_256_s0", "budget.md"),
     ("PPO-Lagrangian", "learning", "protocol_learners", "ppo_lagrangian", "lagrangian.md"),
 )
 """The headline comparison's rows: one per method, its shipped or best configuration."""

@@ -8,7 +8,8 @@
 * ``filters.md``: the shipped plain agents with no filter, the barrier filter and the CBF filter,
   from ``docs/filters_plain/<filter>/results.json``, written by ``blf-eval --agents
   agents/pretrained/ppo_plain agents/pretrained/ppo_plain_searched agents/pretrained/ppo_lagrangian
-  --residual-filter <filter> --jobs 1 --out docs/filters_plain/<filter>`` for none, barrier and cbf.
+  --residual-filter <filter> --jobs 1 --out docs/filters_plain/<folder>`` for none, barrier and cbf,
+  and barrier:handback=0.0033 and cbf:handback=0.0033 (folders barrier_handback, cbf_handback).
 * ``nmpc.md``: the NMPC beside the proposed law on the protocol, with its solver's account (solve
   time per 10 ms sample, fallbacks), from ``docs/nmpc/results.json``, written by
   ``docs/nmpc/run.sh``.
@@ -50,11 +51,16 @@ def protocol_table() -> str:
             "2-core machine, episodes batched.\n\n" + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
 
 
+FILTER_RUNS = ("none", "barrier", "barrier_handback", "cbf", "cbf_handback")
+"""The folders of ``docs/filters_plain``, in the table's order within a policy and group: no filter,
+each filter without and with the hand-back (``--residual-filter barrier:handback=0.0033``)."""
+
+
 def filters_table() -> str:
     lines = []
     cmds = []
-    for filt in ("none", "barrier", "cbf"):
-        path = DOCS / "filters_plain" / filt / "results.json"
+    for folder in FILTER_RUNS:
+        path = DOCS / "filters_plain" / folder / "results.json"
         if not path.is_file():
             continue
         recs, cmd = _records(path)
@@ -63,8 +69,9 @@ def filters_table() -> str:
             if r["kind"] == "baseline":
                 continue
             base = r["policy"].split("+")[0].removesuffix("-filter")
-            lines.append((base, list(GROUPS).index(r["scenario"]) if r["scenario"] in GROUPS else 9, filt,
-                          _row(r, f"{base}, filter {filt}")))
+            spec = r["env_kwargs"].get("residual_filter") or "none"  # the filter as the run named it
+            lines.append((base, list(GROUPS).index(r["scenario"]) if r["scenario"] in GROUPS else 9,
+                          FILTER_RUNS.index(folder), _row(r, f"{base}, filter {spec}")))
     lines.sort()
     return ("Written by `python docs/control/tables.py` from `docs/filters_plain/*/results.json` ("
             + "; ".join(cmds) + ").\n\n" + HEAD + "\n" + "\n".join(row for *_, row in lines) + "\n")
