@@ -50,6 +50,7 @@ import hashlib
 import math
 import multiprocessing
 import os
+import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -267,15 +268,25 @@ class NMPC:
                 return fn
             except Exception:  # noqa: BLE001 (a damaged cache file is rebuilt)
                 pass
-        fn = self._build(ca, compiled)
-        if compiled:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-            fn.save(str(tmp))
-            os.replace(tmp, path)
-        return fn
+        if not compiled:
+            return self._build(ca, None)
+        # CasADi's compiler works in the folder it is told (a scratch folder, gone once the solver is
+        # saved with its binary embedded), but writes the generated C under the working folder by its
+        # jit name: a name of our own, removed after the build (they once piled up in a repository)
+        name = f"blf_nmpc_jit_{os.getpid()}_{path.stem}"
+        with tempfile.TemporaryDirectory(prefix="blf-nmpc-jit-") as scratch:
+            try:
+                fn = self._build(ca, (scratch, name))
+                path.parent.mkdir(parents=True, exist_ok=True)
+                tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+                fn.save(str(tmp))
+                os.replace(tmp, path)
+            finally:
+                Path(f"{name}.c").unlink(missing_ok=True)
+        return ca.Function.load(str(path))  # the saved binary, not the scratch folder's
 
-    def _build(self, ca: Any, compiled: bool) -> Any:
+    def _build(self, ca: Any, jit: tuple[str, str] | None) -> Any:
+        """The solver Function; ``jit`` (scratch folder, name) compiles its C there (None: not compiled)."""
         p, n, N = self.params, self.n, self.N
         nx = 2 * n
         # decision vector w = [vec X (nx, N+1), vec U (n, N), vec S (n, N)]
@@ -308,11 +319,12 @@ class NMPC:
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng)
         hess_lag = ca.Function("hess_lag", [w, P, lam_f, lam_g], [lam_f * ca.triu(ca.DM(hess))],
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        jit = ({"jit": True, "compiler": "shell", "jit_serialize": "embed",
-                "jit_options": {"flags": ["-O3"], "verbose": False}} if compiled else {})
+        opts = {} if jit is None else {
+            "jit": True, "compiler": "shell", "jit_serialize": "embed", "jit_name": jit[1], "jit_temp_suffix": False,
+            "jit_cleanup": False, "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
         # warm start from the shifted solution, multipliers included, with a small barrier parameter
         solver = ca.nlpsol("nmpc_nlp", "ipopt", {"x": w, "p": P, "f": f, "g": g},
-                           {"print_time": False, **jit, "hess_lag": hess_lag, "ipopt.print_level": 0,
+                           {"print_time": False, **opts, "hess_lag": hess_lag, "ipopt.print_level": 0,
                             "ipopt.sb": "yes", "ipopt.max_iter": p.max_iter,
                             "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
                             "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})

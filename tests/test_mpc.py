@@ -240,3 +240,29 @@ def test_the_registered_policy_runs_under_evaluate_policy():
         pol.check_env(gym.make("PlanarBLF-v0", observation_extras=PREVIEW_EXTRAS, control_period=0.02))
     with pytest.raises(ValueError, match="preview"):
         pol.check_env(gym.make("PlanarBLF-v0"))
+
+
+def test_a_compiled_build_leaves_no_files_in_the_working_folder(tmp_path, monkeypatch):
+    """CasADi's compiler writes its C, object and library files into the working folder unless told
+    otherwise (they once piled up in the repository's root): the build uses a scratch folder, and
+    what remains is the cache's one solver file, which solves as the uncompiled build does."""
+    import shutil
+
+    if not (shutil.which("gcc") or shutil.which("cc")):
+        pytest.skip("no C compiler on the PATH")
+    work, cache = tmp_path / "work", tmp_path / "cache"
+    work.mkdir()
+    monkeypatch.chdir(work)
+    monkeypatch.setenv("BLF_GYM_CACHE_DIR", str(cache))
+    params = NMPCParams(horizon=3, **_NO_FRICTION)
+    built = NMPC(params, 150.0, compiled=True)
+    plain = NMPC(params, 150.0, compiled=False)
+    x0, d = np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.0]), np.zeros(3)
+    qref = np.tile(x0[:3, None], (1, 4)) + 0.01
+    args = (x0, d, qref, np.zeros((3, 4)), np.full(4, 0.1), np.full(4, 0.1))
+    u_built, facts, _ = built.solve(*args)
+    u_plain, _, _ = plain.solve(*args)
+    assert facts["success"]
+    np.testing.assert_allclose(u_built, u_plain, rtol=1e-6, atol=1e-6)
+    assert list(work.iterdir()) == []
+    assert [p.suffix for p in (cache / "nmpc").iterdir()] == [".casadi"]
