@@ -258,9 +258,8 @@ def certificate_cases_table() -> str:
                                f"{sum(r['violations']):,} | {r['failure_rate']:.2f} | {broken} |"))
     if law is None:
         return "No results yet: `docs/certificate_cases/run.sh` writes them.\n"
-    if law is not None:
-        out.append(f"| proposed law alone | - | {law['episodes']} | 1.000 | {sum(law['violations']):,} | "
-                   f"{law['failure_rate']:.2f} | - |")
+    out.append(f"| proposed law alone | - | {law['episodes']} | 1.000 | {sum(law['violations']):,} | "
+               f"{law['failure_rate']:.2f} | - |")
     order = {"barrier": 0, "cbf": 2}
     rows.sort(key=lambda x: (order.get(x[0].split(":")[0], 9), x[0]))
     return "\n".join(out + [row for _, row in rows]) + "\n"
