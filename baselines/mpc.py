@@ -15,29 +15,31 @@ link). The state and d come from the policy's own extended Kalman filter on z = 
 model's step under the torque applied over the last sample predicts, the measured angle corrects, d
 is a random walk. The env's LESO lags the friction's mode, so its estimates are not used.
 
-**Status: work in progress, not yet a protocol row.** On both paper presets it runs the 30 s
-episode with an RMSE near 0.1 degrees, but the external force's onset pushes the error past the
-upper bound's floor for a few samples (docs/model.md section 15).
+Its rows on the protocol are in docs/nmpc (``docs/nmpc/run.sh``, docs/model.md section 15).
 
 The problem (multiple shooting, N intervals of ``sample_period``, x_0 the measured angle and the
 observer's velocity):
 
-    min  sum_{k=1..N} |q_k - q_d,k|^2_Q + |qd_k - qd_d,k|^2_Qd + sum_{k<N} r |u_k|^2 + rho 1^T s_k
+    min  sum_{k=1..N} |q_k - q_d,k|^2_Q + |qd_k - qd_d,k|^2_Qd
+         + sum_{k<N} (r |u_k|^2 + r_d |u_k - u_k-1|^2 + rho 1^T s_k)      (u_-1: the torque applied last)
     s.t. x_{k+1} = RK4(x_k, u_k),   |u_k| <= u_max,   s_k >= 0,
          -(1 - beta) k_b,k+1 - s_k <= q_k+1 - q_d,k+1 <= (1 - beta) k_a,k+1 + s_k
 
-with beta the ``backoff``.
+with beta the ``backoff``, r the ``u_weight``, r_d the ``du_weight`` and rho the ``penalty``.
 
 The output constraints are soft with an exact (L1) penalty, so the problem is always feasible;
-every violation is still counted by the benchmark. IPOPT solves it with the Gauss-Newton Hessian
-(the cost is quadratic in the unknowns; the dynamics' curvature is left out), warm-started from the
-previous solution (primal and dual) shifted by one interval; the problem's functions are compiled to C once
-and kept in blf-gym's cache folder (:func:`blf_gym.io.cache_dir`, ``nmpc/``), so later processes
-load them in a fraction of a second.
+every violation is still counted by the benchmark. The objective is quadratic in the unknowns, so
+its Hessian is constant and serves as the Gauss-Newton Hessian (the dynamics' curvature is left
+out). By default each sample takes one **real-time iteration** (``scheme="rti"``): from the previous
+solution shifted by one interval (primal and dual), the dynamics and constraints are linearised
+once and one QP in the step is solved (CasADi's qrqp), whose full step is the new plan. The
+``"ipopt"`` scheme instead solves each sample's problem to convergence with IPOPT from the same
+warm start. The problem's functions are compiled to C once and kept in blf-gym's cache folder
+(:func:`blf_gym.io.cache_dir`, ``nmpc/``), so later processes load them in a fraction of a second.
 
-A solve that IPOPT does not report as converged is a **failure**: the policy then applies the next
-torque of its last converged plan while that plan lasts, and otherwise a computed-torque law on the
-same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`). With
+A solve whose solver (the QP's, or IPOPT) does not report success is a **failure**: the policy
+then applies the next torque of its last successful plan while that plan lasts, and otherwise a
+computed-torque law on the same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`). With
 ``retry_every`` > 1, while the computed-torque law acts a solve is tried only every ``retry_every``
 samples, so an arm the model has lost costs less. An
 estimator whose state is no longer finite (an arm that spun far from its model) starts again at the
@@ -104,8 +106,25 @@ class NMPCParams:
     backoff: float = field(default=0.02, metadata={"unit": "-"})
     """Share of the bounds the constraints keep free (in [0, 1)): the constraints hold at the
     nodes, the benchmark counts every 1 ms sample in between, and the angle is measured."""
+    scheme: str = field(default="rti", metadata={"unit": "-"})
+    """How each sample's problem is solved. ``"rti"`` (the default), the real-time iteration: one
+    full Gauss-Newton SQP step per sample from the previous sample's solution shifted by one
+    interval, the dynamics and constraints linearised there and the QP solved by ``qp_solver``, so
+    the work per sample is one Jacobian and one warm-started QP. ``"ipopt"``: IPOPT to convergence,
+    at most ``max_iter`` iterations (the scheme of the first protocol run, docs/nmpc/ipopt)."""
+    qp_solver: str = field(default="hpipm", metadata={"unit": "-"})
+    """The ``"rti"`` scheme's QP solver, a CasADi conic plug-in. ``"daqp"`` (the default), DAQP's
+    dual active-set method (Arnstrom, Bemporad and Axehill, 2022), warm-started from the last
+    multipliers: about 4 ms per sample with the Jacobian here. On a test whose output constraints
+    are active (``tests/test_mpc.py``), CasADi's own qrqp stopped at its iteration limit on about a
+    fifth of the samples; warm-started on one fixed sample, qpOASES took about ten times as long per
+    QP and ProxQP about twenty, and OSQP stopped at its iteration limit."""
+    regularization: float = field(default=1e-6, metadata={"unit": "-"})
+    """Added to the diagonal of the ``"rti"`` scheme's QP Hessian (in the objective's units per
+    unknown squared): a Levenberg-Marquardt term that makes the QP strictly convex without moving
+    the point the iterations converge to."""
     max_iter: int = field(default=50, metadata={"unit": "-"})
-    """IPOPT's iteration limit per sample; a solve that reaches it is a failure. A limit of 15 (on six
+    """IPOPT's iteration limit per sample (the ``"ipopt"`` scheme); a solve that reaches it is a failure. A limit of 15 (on six
     training-suite episodes every converged solve but one took at most 8 iterations) cut the
     protocol run's CPU time by a quarter but lost the arm at the force's onset on the 0.1 Hz preset
     and in the training suite, where converging solves need more iterations (docs/model.md
@@ -141,7 +160,7 @@ class NMPCParams:
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"{o}.{name} must be an integer >= 1, got {v!r}")
         for name in ("sample_period", "q_weight", "qd_weight", "u_weight", "du_weight", "penalty", "fallback_kp",
-                     "fallback_kd", "measurement_std", "velocity_noise", "disturbance_noise"):
+                     "fallback_kd", "regularization", "measurement_std", "velocity_noise", "disturbance_noise"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"{o}.{name} must be a finite number >= 0, got {v!r}")
@@ -149,6 +168,10 @@ class NMPCParams:
         for name in ("sample_period", "measurement_std"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{o}.{name} must be > 0, got {getattr(self, name)!r}")
+        if self.scheme not in ("ipopt", "rti"):
+            raise ValueError(f"{o}.scheme must be 'ipopt' or 'rti', got {self.scheme!r}")
+        if not isinstance(self.qp_solver, str) or not self.qp_solver:
+            raise ValueError(f"{o}.qp_solver must be the name of a CasADi conic plug-in, got {self.qp_solver!r}")
         b = self.backoff
         if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0 <= b < 1:
             raise ValueError(f"{o}.backoff must be a number in [0, 1), got {b!r}")
@@ -197,6 +220,19 @@ def _friction(ca: Any, friction: FrictionParams | None, qd: Any) -> Any:
     if friction is None:
         return ca.SX.zeros(qd.shape[0])
     return friction.viscous * qd + friction.coulomb * ca.tanh(friction.tanh_slope * qd)
+
+
+_QP_OPTIONS: dict[str, dict[str, Any]] = {
+    # HPIPM's interior point: its residual tolerances are absolute, and this problem's gradient is of
+    # order 1e5 (the penalty), so stationarity is asked to 1e-3 (1e-8 relative) and the rest to 1e-6;
+    # CasADi gives every unbounded unknown the box +-inf, here +-1e3 (of a step in rad, rad/s or N m)
+    "hpipm": {"inf": 1e3, "hpipm": {"mode": "robust", "iter_max": 100, "res_g_max": 1e-3, "res_b_max": 1e-6,
+                                    "res_d_max": 1e-6, "res_m_max": 1e-6}},
+    "qrqp": {"print_iter": False, "print_header": False, "print_info": False},
+    "osqp": {"osqp": {"verbose": False}},
+    "qpoases": {"printLevel": "none"},
+}
+"""The ``"rti"`` scheme's options for a QP plug-in: HPIPM's tolerances, the others' silence."""
 
 
 class NMPC:
@@ -261,40 +297,65 @@ class NMPC:
 
         compiled = compiled and (shutil.which("gcc") or shutil.which("cc")) is not None
         path = cache_dir() / "nmpc" / f"{self._key(compiled)}.casadi"
+        fn = None
         if path.is_file():
             try:
                 fn = ca.Function.load(str(path))
-                self._nlam = int(fn.size1_in(10))
-                return fn
             except Exception:  # noqa: BLE001 (a damaged cache file is rebuilt)
-                pass
-        if not compiled:
-            return self._build(ca, None)
-        # CasADi's compiler works in the folder it is told (a scratch folder, gone once the solver is
-        # saved with its binary embedded), but writes the generated C under the working folder by its
-        # jit name: a name of our own, removed after the build (they once piled up in a repository)
-        name = f"blf_nmpc_jit_{os.getpid()}_{path.stem}"
-        with tempfile.TemporaryDirectory(prefix="blf-nmpc-jit-") as scratch:
-            try:
-                fn = self._build(ca, (scratch, name))
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-                fn.save(str(tmp))
-                os.replace(tmp, path)
-            finally:
-                Path(f"{name}.c").unlink(missing_ok=True)
-        return ca.Function.load(str(path))  # the saved binary, not the scratch folder's
+                fn = None
+        if fn is None and not compiled:
+            fn = self._build(ca, None, part=True)
+        elif fn is None:
+            # CasADi's compiler works in the folder it is told (a scratch folder, gone once the
+            # function is saved with its binary embedded), but writes the generated C under the working
+            # folder by its jit name: a name of our own, removed after the build (they once piled up in
+            # a repository)
+            name = f"blf_nmpc_jit_{os.getpid()}_{path.stem}"
+            with tempfile.TemporaryDirectory(prefix="blf-nmpc-jit-") as scratch:
+                try:
+                    built = self._build(ca, (scratch, name), part=True)
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+                    built.save(str(tmp))
+                    os.replace(tmp, path)
+                finally:
+                    Path(f"{name}.c").unlink(missing_ok=True)
+            fn = ca.Function.load(str(path))  # the saved binary, not the scratch folder's
+        if self.params.scheme == "rti":
+            return self._build(ca, None, lin=fn)  # the QP solver around the cached linearisation
+        self._nlam = int(fn.size1_in(10))  # the multipliers' input
+        return fn
 
-    def _build(self, ca: Any, jit: tuple[str, str] | None) -> Any:
-        """The solver Function; ``jit`` (scratch folder, name) compiles its C there (None: not compiled)."""
+    def _layout(self) -> tuple[int, int, int]:
+        """(stage state size, stage control size, unknowns) of the stage-wise problem (:meth:`_build`)."""
+        n, N = self.n, self.N
+        nz, nv = 4 * n, 2 * n
+        return nz, nv, (N + 1) * nz + N * nv
+
+    def _build(self, ca: Any, jit: tuple[str, str] | None, part: bool = False, lin: Any = None) -> Any:
+        """The solver Function; ``jit`` (scratch folder, name) compiles its C there (None: not compiled).
+        ``part``: only the part that is compiled and cached, for ``"rti"`` the linearisation (the QP
+        solvers cannot all be saved), for ``"ipopt"`` the whole solver; ``lin``: that linearisation,
+        loaded, for ``"rti"``.
+
+        The problem is written stage by stage, as structure-exploiting QP solvers (HPIPM) need it:
+        the unknowns are w = [z_0, v_0, z_1, v_1, ..., z_N], with the stage state
+        z_k = [x_k, sigma_k, u_prev,k] (the arm's state, the slack of node k, the torque of the stage
+        before) and the stage control v_k = [u_k, s_k] (the torque and the slack of node k+1), so that
+        z_k+1 = [RK4(x_k, u_k), s_k, u_k] and every cost term and constraint involves one stage only.
+        The constraints are ordered [gap_0, init_0, gap_1, out_1, ..., gap_N-1, out_N-1, out_N]: the
+        gaps z_k+1 - f(z_k, v_k) = 0, the initial stage z_0 = [x0, 0, u_last], and each node's two
+        soft output constraints."""
         p, n, N = self.params, self.n, self.N
         nx = 2 * n
-        # decision vector w = [vec X (nx, N+1), vec U (n, N), vec S (n, N)]
-        nX, nU = nx * (N + 1), n * N
-        w = ca.MX.sym("w", nX + 2 * nU)
-        X = ca.reshape(w[:nX], nx, N + 1)
-        U = ca.reshape(w[nX:nX + nU], n, N)
-        S = ca.reshape(w[nX + nU:], n, N)
+        nz, nv, nw = self._layout()
+        stride = nz + nv
+        w = ca.MX.sym("w", nw)
+        stages = ca.reshape(w[: N * stride], stride, N)
+        Z = ca.horzcat(stages[:nz, :], w[N * stride:])  # z_0 .. z_N
+        V = stages[nz:, :]
+        X, Sig, Uprev = Z[:nx, :], Z[nx:nx + n, :], Z[nx + n:, :]
+        U, S = V[:n, :], V[n:, :]
         x0, dh, ulast = ca.MX.sym("x0", nx), ca.MX.sym("d", n), ca.MX.sym("u_last", n)
         qref, qdref = ca.MX.sym("qref", n, N + 1), ca.MX.sym("qdref", n, N + 1)
         ka, kb = ca.MX.sym("ka", 1, N + 1), ca.MX.sym("kb", 1, N + 1)
@@ -302,48 +363,94 @@ class NMPC:
         P = ca.vertcat(*[ca.vec(a) for a in pars])
         E = X[:n, 1:] - qref[:, 1:]
         Ed = X[n:, 1:] - qdref[:, 1:]
-        dU = U - ca.horzcat(ulast, U[:, : N - 1])
         f = (p.q_weight * ca.sumsqr(E) + p.qd_weight * ca.sumsqr(Ed) + p.u_weight * ca.sumsqr(U)
-             + p.du_weight * ca.sumsqr(dU) + p.penalty * ca.sum1(ca.sum2(S)))
+             + p.du_weight * ca.sumsqr(U - Uprev[:, :N]) + p.penalty * ca.sum1(ca.sum2(Sig[:, 1:])))
         keep = 1.0 - p.backoff
         # the horizon's steps as one mapped call: the generated code holds one step and its derivatives
-        shoot = X[:, 1:] - self.step.map(N)(X[:, :N], U, ca.repmat(dh, 1, N))
-        g = ca.vertcat(X[:, 0] - x0, ca.vec(shoot),
-                       ca.vec(E - S - ca.repmat(keep * ka[:, 1:], n, 1)),
-                       ca.vec(-E - S - ca.repmat(keep * kb[:, 1:], n, 1)))
-        ng_eq = nx * (N + 1)
+        gaps = Z[:, 1:] - ca.vertcat(self.step.map(N)(X[:, :N], U, ca.repmat(dh, 1, N)), S, U)
+        out = ca.vertcat(E - Sig[:, 1:] - ca.repmat(keep * ka[:, 1:], n, 1),
+                         -E - Sig[:, 1:] - ca.repmat(keep * kb[:, 1:], n, 1))  # node k's in column k-1
+        init = Z[:, 0] - ca.vertcat(x0, ca.DM.zeros(n), ulast)
+        g = ca.vertcat(gaps[:, 0], init, ca.vec(ca.vertcat(gaps[:, 1:], out[:, : N - 1])), out[:, N - 1])
+        eq = np.concatenate([np.ones(2 * nz), np.tile(np.r_[np.ones(nz), np.zeros(2 * n)], N - 1), np.zeros(2 * n)])
         ng = int(g.shape[0])
         # Gauss-Newton: the objective is quadratic in w, so its Hessian is constant; the dynamics'
         # curvature is left out (the exact Hessian through the substeps was 70 % of a solve)
-        hess = ca.Function("h", [w], [ca.hessian(f, w)[0]])(ca.DM.zeros(w.shape[0]))
+        hess = ca.DM(ca.Function("h", [w], [ca.hessian(f, w)[0]])(ca.DM.zeros(nw)))
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng)
-        hess_lag = ca.Function("hess_lag", [w, P, lam_f, lam_g], [lam_f * ca.triu(ca.DM(hess))],
+        hess_lag = ca.Function("hess_lag", [w, P, lam_f, lam_g], [lam_f * ca.triu(hess)],
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         opts = {} if jit is None else {
             "jit": True, "compiler": "shell", "jit_serialize": "embed", "jit_name": jit[1], "jit_temp_suffix": False,
             "jit_cleanup": False, "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
-        # warm start from the shifted solution, multipliers included, with a small barrier parameter
-        solver = ca.nlpsol("nmpc_nlp", "ipopt", {"x": w, "p": P, "f": f, "g": g},
-                           {"print_time": False, **opts, "hess_lag": hess_lag, "ipopt.print_level": 0,
-                            "ipopt.sb": "yes", "ipopt.max_iter": p.max_iter,
-                            "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
-                            "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
         inf = np.inf
-        lbw = np.concatenate([np.full(nX, -inf), np.full(nU, -self.u_max), np.zeros(nU)])
-        ubw = np.concatenate([np.full(nX, inf), np.full(nU, self.u_max), np.full(nU, inf)])
-        lbg = np.concatenate([np.zeros(ng_eq), np.full(ng - ng_eq, -inf)])
+        lo_v, hi_v = np.r_[np.full(n, -self.u_max), np.zeros(n)], np.r_[np.full(n, self.u_max), np.full(n, inf)]
+        lbw = np.r_[np.tile(np.r_[np.full(nz, -inf), lo_v], N), np.full(nz, -inf)]
+        ubw = np.r_[np.tile(np.r_[np.full(nz, inf), hi_v], N), np.full(nz, inf)]
+        lbg = np.where(eq == 1, 0.0, -inf)
         ubg = np.zeros(ng)
-        self._nlam = ng + int(w.shape[0])
+        self._nlam = ng + nw
         X0, U0, S0 = ca.MX.sym("X0", nx, N + 1), ca.MX.sym("U0", n, N), ca.MX.sym("S0", n, N)
         L0 = ca.MX.sym("L0", self._nlam)
-        sol = solver(x0=ca.vertcat(ca.vec(X0), ca.vec(U0), ca.vec(S0)), p=P, lbx=lbw, ubx=ubw, lbg=lbg, ubg=ubg,
-                     lam_g0=L0[:ng], lam_x0=L0[ng:])
-        ws = sol["x"]
-        out = [ca.reshape(ws[:nX], nx, N + 1), ca.reshape(ws[nX:nX + nU], n, N), ca.reshape(ws[nX + nU:], n, N),
+        # the warm start's stages from its trajectory: sigma_k = s_k-1 (0 at the first node), u_prev,k = u_k-1
+        Z0 = ca.vertcat(X0, ca.horzcat(ca.DM.zeros(n), S0), ca.horzcat(ulast, U0))
+        w0 = ca.vertcat(ca.vec(ca.vertcat(Z0[:, :N], U0, S0)), Z0[:, N])
+        if p.scheme == "rti":
+            # the real-time iteration: one full Gauss-Newton step from the shifted solution w0, the QP
+            # in the step dw with the constraints linearised at w0 (one Jacobian, one QP per sample)
+            if lin is None:
+                lin = ca.Function("nmpc_lin", [w, P], [g, ca.jacobian(g, w), ca.gradient(f, w)], opts)
+            if part:
+                return lin
+            g0, J0, grad0 = lin(w0, P)
+            # the step's metric is regularised (Levenberg-Marquardt): the slacks and the first node have
+            # no quadratic cost; a fixed point (zero step) is still a KKT point of the problem itself
+            h_qp = hess + p.regularization * ca.DM.eye(nw)
+            qp_opts: dict[str, Any] = {"error_on_fail": False, **_QP_OPTIONS.get(p.qp_solver, {})}
+            if p.qp_solver == "hpipm":  # the stage structure, as laid out above
+                qp_opts.update(N=N, nx=[nz] * (N + 1), nu=[nv] * N + [0], ng=[nz] + [2 * n] * N)
+            qp = ca.conic("nmpc_qp", p.qp_solver, {"h": h_qp.sparsity(), "a": J0.sparsity()}, qp_opts)
+            sol = qp(h=h_qp, g=grad0, a=J0, lba=lbg - g0, uba=ubg - g0, lbx=lbw - w0, ubx=ubw - w0,
+                     lam_a0=L0[:ng], lam_x0=L0[ng:])
+            ws, sol = w0 + sol["x"], {"lam_g": sol["lam_a"], "lam_x": sol["lam_x"]}
+        else:
+            # IPOPT from the shifted solution, multipliers included, with a small barrier parameter
+            solver = ca.nlpsol("nmpc_nlp", "ipopt", {"x": w, "p": P, "f": f, "g": g},
+                               {"print_time": False, **opts, "hess_lag": hess_lag, "ipopt.print_level": 0,
+                                "ipopt.sb": "yes", "ipopt.max_iter": p.max_iter,
+                                "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
+                                "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
+            sol = solver(x0=w0, p=P, lbx=lbw, ubx=ubw, lbg=lbg, ubg=ubg, lam_g0=L0[:ng], lam_x0=L0[ng:])
+            ws = sol["x"]
+        st = ca.reshape(ws[: N * stride], stride, N)
+        res = [ca.horzcat(st[:nx, :], ws[N * stride:N * stride + nx]), st[nz:nz + n, :], st[nz + n:, :],
                ca.vertcat(sol["lam_g"], sol["lam_x"])]
-        return ca.Function("nmpc", [*pars, X0, U0, S0, L0], out,
+        return ca.Function("nmpc", [*pars, X0, U0, S0, L0], res,
                            ["x0", "d", "qref", "qdref", "ka", "kb", "u_last", "X0", "U0", "S0", "L0"],
                            ["X", "U", "S", "L"])
+
+    def _shift_multipliers(self, lam: np.ndarray) -> np.ndarray:
+        """The multipliers ``[lam_g, lam_x]`` of a solution moved one interval on, as its primal
+        values are: each stage's block takes the next stage's and the last is repeated (the initial
+        stage's constraint keeps its own), so a warm-started QP or IPOPT starts from the right guess."""
+        n, N = self.n, self.N
+        nz, nv, nw = self._layout()
+        lam = np.asarray(lam, dtype=float).ravel()
+        ng = lam.size - nw
+        # lam_g = [gap_0, init_0, (gap_k, out_k) for k = 1..N-1, out_N]; lam_x = [(z_k, v_k) for k < N, z_N]
+        gap0, init = lam[:nz], lam[nz:2 * nz]
+        mid = lam[2 * nz: ng - 2 * n].reshape(N - 1, nz + 2 * n)
+        outN = lam[ng - 2 * n: ng]
+        gaps = np.vstack([gap0[None], mid[:, :nz]])  # gap_0 .. gap_N-1
+        outs = np.vstack([mid[:, nz:], outN[None]])  # out_1 .. out_N
+        gaps = np.vstack([gaps[1:], gaps[-1:]])
+        outs = np.vstack([outs[1:], outs[-1:]])
+        lam_g = np.concatenate([gaps[0], init, np.hstack([gaps[1:], outs[:-1]]).ravel(), outs[-1]])
+        lx = lam[ng:]
+        stages = lx[: N * (nz + nv)].reshape(N, nz + nv)
+        zN = lx[N * (nz + nv):]
+        stages = np.vstack([stages[1:], np.r_[zN, stages[-1, nz:]][None]])
+        return np.concatenate([lam_g, stages.ravel(), stages[-1, :nz]])
 
     def predict_states(self, x0: np.ndarray, torques: np.ndarray, d: np.ndarray | None = None) -> np.ndarray:
         """The model's states after each of ``torques`` (k, n), each held one sample period, from x0."""
@@ -367,19 +474,26 @@ class NMPC:
             X0 = np.hstack([Xg[:, 1:], Xg[:, -1:]])
             U0 = np.hstack([Ug[:, 1:], Ug[:, -1:]])
             S0 = np.hstack([Sg[:, 1:], Sg[:, -1:]])
-            L0 = Lg
+            L0 = self._shift_multipliers(Lg)
         else:
             X0 = np.repeat(np.reshape(x0, (-1, 1)), self.N + 1, axis=1)
             U0 = np.zeros((self.n, self.N))
             S0 = np.zeros((self.n, self.N))
             L0 = np.zeros(self._nlam)
-        X, U, S, L = self._solver(x0, d_hat, q_ref, qd_ref, np.reshape(k_a, (1, -1)), np.reshape(k_b, (1, -1)),
-                                  u_last, X0, U0, S0, L0)
+        try:
+            X, U, S, L = self._solver(x0, d_hat, q_ref, qd_ref, np.reshape(k_a, (1, -1)), np.reshape(k_b, (1, -1)),
+                                      u_last, X0, U0, S0, L0)
+        except RuntimeError:  # the solver refused its data (e.g. a non-finite state): a failure like any other
+            return np.full((self.n, self.N), np.nan), {"success": False, "iterations": 0, "slack": float("nan"),
+                                                      "status": SOLVER_ERROR}, None
         stats = self._solver.stats()
         X, U, S, L = np.asarray(X), np.asarray(U), np.asarray(S), np.asarray(L)
         ok = bool(stats.get("success", False)) and bool(np.all(np.isfinite(U)))
+        status = stats.get("return_status", "")
+        if not isinstance(status, str):  # a QP plug-in's numeric code: CasADi's name for it first
+            status = f"{stats.get('unified_return_status', 'SOLVER_RET_UNKNOWN')} ({self.params.qp_solver} {status})"
         facts = {"success": ok, "iterations": int(stats.get("iter_count", -1)),
-                 "slack": float(np.max(S)) if S.size else 0.0, "status": str(stats.get("return_status", ""))}
+                 "slack": float(np.max(S)) if S.size else 0.0, "status": status}
         return U, facts, ((X, U, S, L) if ok else None)
 
 
@@ -398,6 +512,9 @@ class _Arm:
         self.wait = 0
         """Samples left before the next solve while the computed-torque fallback acts."""
 
+
+SOLVER_ERROR = "Solver_Error"
+"""The status of a solve whose solver raised an error instead of returning (:meth:`NMPC.solve`)."""
 
 SKIPPED = "Skipped_In_Fallback"
 """The status of a sample on which no solve ran (:attr:`NMPCParams.retry_every`)."""
@@ -427,10 +544,13 @@ def _estimate(nmpc: NMPC, arm: _Arm, y: np.ndarray, u_last: np.ndarray) -> np.nd
 
 def _act(nmpc: NMPC, arm: _Arm, y, qref, qdref, ka, kb, u_last,
          qdd_now) -> tuple[np.ndarray, float, bool, str, bool]:
-    """One sample of one arm: (torque, solve time in s, whether the fallback acted, IPOPT's status,
-    whether the estimator was restarted because its state was no longer finite)."""
+    """One sample of one arm: (torque, solve time in s, whether the fallback acted, the solver's status,
+    whether the estimator was restarted because its state or covariance was no longer usable)."""
     t0 = time.perf_counter()
-    z = _estimate(nmpc, arm, y, u_last)
+    try:
+        z = _estimate(nmpc, arm, y, u_last)
+    except np.linalg.LinAlgError:  # a covariance gone singular: the same as a state no longer finite
+        z = np.full(3 * nmpc.n, np.nan)
     restarted = not np.all(np.isfinite(z))
     if restarted:  # the filter diverged (an arm spun far from its model): start it afresh at y
         arm.z, arm.cov, arm.warm, arm.plan, arm.wait = None, None, None, None, 0
@@ -637,7 +757,7 @@ class NMPCPolicy:
         """The samples so far and the solves among them (the others were skipped while the fallback
         acted, :attr:`NMPCParams.retry_every`); fallbacks (samples whose torque did not come from a
         converged solve), estimator restarts (its state was no longer finite, so it started again at
-        the measured angle), IPOPT's statuses (``Skipped_In_Fallback`` for a sample without a solve),
+        the measured angle), the solver's statuses (``Skipped_In_Fallback`` for a sample without a solve),
         and the time of a sample with a solve in ms, the estimator included (median, 99th percentile,
         largest)."""
         t = np.array(self._times) * 1e3

@@ -181,7 +181,8 @@ def test_it_keeps_active_output_constraints_on_the_nominal_plant():
 
 
 def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
-    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, retry_every=1, **_NO_FRICTION), compiled=False)
+    pol = NMPCPolicy(NMPCParams(horizon=10, scheme="ipopt", max_iter=1, retry_every=1, **_NO_FRICTION),
+                     compiled=False)
     errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
     rep = pol.report()
     assert rep["solves"] == 20 and rep["fallbacks"] == 20
@@ -192,7 +193,8 @@ def test_a_forced_solver_failure_takes_the_fallback_and_is_counted():
 def test_while_the_fallback_acts_a_solve_is_tried_only_every_retry_every_samples():
     """Every solve fails (one iteration): the samples 0, 5, 10, 15 try one and the others keep the
     computed-torque fallback without one; every sample is still a fallback."""
-    pol = NMPCPolicy(NMPCParams(horizon=10, max_iter=1, retry_every=5, **_NO_FRICTION), compiled=False)
+    pol = NMPCPolicy(NMPCParams(horizon=10, scheme="ipopt", max_iter=1, retry_every=5, **_NO_FRICTION),
+                     compiled=False)
     errs, _ = _run(pol, _nominal(wide=True, duration=0.2), 20)
     rep = pol.report()
     assert rep["samples"] == 20 and rep["solves"] == 4 and rep["fallbacks"] == 20
@@ -200,6 +202,39 @@ def test_while_the_fallback_acts_a_solve_is_tried_only_every_retry_every_samples
     assert np.all(np.isfinite(errs)) and np.abs(errs).max() < 0.2
     with pytest.raises(ValueError, match="retry_every"):
         NMPCParams(retry_every=0)
+
+
+def test_repeated_real_time_iterations_reach_ipopts_optimum():
+    """An RTI step is one Gauss-Newton SQP step; repeated at the same sample from its own result it
+    must converge to a KKT point of the problem, which IPOPT finds independently (the same
+    Gauss-Newton Hessian, so the same problem). A wrong linearisation, sign or shift breaks it."""
+    params = dict(horizon=8, **_NO_FRICTION)
+    rti = NMPC(NMPCParams(scheme="rti", **params), 150.0, compiled=False)
+    ipopt = NMPC(NMPCParams(scheme="ipopt", **params), 150.0, compiled=False)
+    x0, d = np.array([0.1, 0.2, 0.3, 0.5, -0.4, 0.2]), np.array([0.3, -0.2, 0.1])
+    qref = np.tile(x0[:3, None], (1, 9)) + np.linspace(0.0, 0.05, 9)  # a ramp the bounds make binding
+    args = (x0, d, qref, np.full((3, 9), 0.6), np.full(9, 0.02), np.full(9, 0.02))
+    u_opt, facts, _ = ipopt.solve(*args)
+    assert facts["success"]
+    warm, steps = None, []
+    for _ in range(15):
+        u, facts, new = rti.solve(*args, warm=warm)
+        assert facts["success"], facts
+        # solve() shifts the warm start by one interval (the next sample's); undo it to stay put
+        warm = tuple(np.hstack([a[:, :1], a[:, :-1]]) if a.ndim == 2 else a for a in new)
+        steps.append(u)
+    assert np.abs(steps[0] - u_opt).max() > 1e-2  # one step from a cold start is not yet the optimum
+    np.testing.assert_allclose(steps[-1], u_opt, atol=1e-4 * 150)
+
+
+def test_a_failed_qp_is_reported_as_a_failure():
+    """The RTI's QP solver reports no success on data it cannot solve (here a NaN state): solve()
+    calls it a failure and gives no warm start, as for IPOPT, so the policy takes its fallback."""
+    rti = NMPC(NMPCParams(scheme="rti", horizon=3, **_NO_FRICTION), 150.0, compiled=False)
+    x0 = np.array([np.nan, 0.2, 0.3, 0.0, 0.0, 0.0])
+    args = (x0, np.zeros(3), np.zeros((3, 4)), np.zeros((3, 4)), np.full(4, 0.1), np.full(4, 0.1))
+    _, facts, warm = rti.solve(*args)
+    assert not facts["success"] and warm is None
 
 
 def test_a_diverged_estimator_restarts_at_the_measured_angle_and_is_counted():
