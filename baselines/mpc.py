@@ -32,18 +32,18 @@ every violation is still counted by the benchmark. The objective is quadratic in
 its Hessian is constant and serves as the Gauss-Newton Hessian (the dynamics' curvature is left
 out). By default each sample takes one **real-time iteration** (``scheme="rti"``): from the previous
 solution shifted by one interval (primal and dual), the dynamics and constraints are linearised
-once and one QP in the step is solved (CasADi's qrqp), whose full step is the new plan. The
+once and one QP in the step is solved (HPIPM, through CasADi), whose full step is the new plan. The
 ``"ipopt"`` scheme instead solves each sample's problem to convergence with IPOPT from the same
 warm start. The problem's functions are compiled to C once and kept in blf-gym's cache folder
 (:func:`blf_gym.io.cache_dir`, ``nmpc/``), so later processes load them in a fraction of a second.
 
 A solve whose solver (the QP's, or IPOPT) does not report success is a **failure**: the policy
 then applies the next torque of its last successful plan while that plan lasts, and otherwise a
-computed-torque law on the same model (``fallback_kp``, ``fallback_kd``); both are counted (:meth:`NMPCPolicy.report`). With
-``retry_every`` > 1, while the computed-torque law acts a solve is tried only every ``retry_every``
-samples, so an arm the model has lost costs less. An
-estimator whose state is no longer finite (an arm that spun far from its model) starts again at the
-measured angle, and that restart is counted too.
+computed-torque law on the same model (``fallback_kp``, ``fallback_kd``); both are counted
+(:meth:`NMPCPolicy.report`). With ``retry_every`` > 1, while the computed-torque law acts a solve
+is tried only every ``retry_every`` samples, so an arm the model has lost costs less. An estimator
+whose state is no longer finite, or whose covariance has become singular (an arm that spun far
+from its model), starts again at the measured angle, and that restart is counted too.
 """
 
 from __future__ import annotations
@@ -113,24 +113,22 @@ class NMPCParams:
     the work per sample is one Jacobian and one warm-started QP. ``"ipopt"``: IPOPT to convergence,
     at most ``max_iter`` iterations (the scheme of the first protocol run, docs/nmpc/ipopt)."""
     qp_solver: str = field(default="hpipm", metadata={"unit": "-"})
-    """The ``"rti"`` scheme's QP solver, a CasADi conic plug-in. ``"daqp"`` (the default), DAQP's
-    dual active-set method (Arnstrom, Bemporad and Axehill, 2022), warm-started from the last
-    multipliers: about 4 ms per sample with the Jacobian here. On a test whose output constraints
-    are active (``tests/test_mpc.py``), CasADi's own qrqp stopped at its iteration limit on about a
-    fifth of the samples; warm-started on one fixed sample, qpOASES took about ten times as long per
-    QP and ProxQP about twenty, and OSQP stopped at its iteration limit."""
+    """The ``"rti"`` scheme's QP solver, a CasADi conic plug-in. ``"hpipm"`` (the default), HPIPM's
+    interior point (Frison and Diehl, 2020), which exploits the problem's stage structure by a
+    Riccati recursion (``_QP_OPTIONS`` in this module holds its tolerances). The others take the
+    same QP without that structure and were slower or failed here (docs/model.md section 15)."""
     regularization: float = field(default=1e-6, metadata={"unit": "-"})
     """Added to the diagonal of the ``"rti"`` scheme's QP Hessian (in the objective's units per
     unknown squared): a Levenberg-Marquardt term that makes the QP strictly convex without moving
     the point the iterations converge to."""
     max_iter: int = field(default=50, metadata={"unit": "-"})
-    """IPOPT's iteration limit per sample (the ``"ipopt"`` scheme); a solve that reaches it is a failure. A limit of 15 (on six
-    training-suite episodes every converged solve but one took at most 8 iterations) cut the
-    protocol run's CPU time by a quarter but lost the arm at the force's onset on the 0.1 Hz preset
-    and in the training suite, where converging solves need more iterations (docs/model.md
-    section 15), so the limit stays at 50."""
+    """IPOPT's iteration limit per sample (the ``"ipopt"`` scheme); a solve that reaches it is a
+    failure. A limit of 15 (on six training-suite episodes every converged solve but one took at
+    most 8 iterations) cut the protocol run's CPU time by a quarter but lost the arm at the force's
+    onset on the 0.1 Hz preset and in the training suite, where converging solves need more
+    iterations (docs/model.md section 15), so the limit stays at 50."""
     retry_every: int = field(default=1, metadata={"unit": "-"})
-    """While the computed-torque fallback acts (a solve failed and no converged plan is left), the
+    """While the computed-torque fallback acts (a solve failed and no successful plan is left), the
     problem is solved again only every ``retry_every`` samples (1, the default: at every sample, as
     in the documented protocol rows); the samples in between keep the fallback without a solve. A
     larger value bounds the cost of an arm the model has lost (10 in the run of docs/nmpc/max_iter15)."""
@@ -382,7 +380,8 @@ class NMPC:
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         opts = {} if jit is None else {
             "jit": True, "compiler": "shell", "jit_serialize": "embed", "jit_name": jit[1], "jit_temp_suffix": False,
-            "jit_cleanup": False, "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
+            "jit_cleanup": False,
+            "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
         inf = np.inf
         lo_v, hi_v = np.r_[np.full(n, -self.u_max), np.zeros(n)], np.r_[np.full(n, self.u_max), np.full(n, inf)]
         lbw = np.r_[np.tile(np.r_[np.full(nz, -inf), lo_v], N), np.full(nz, -inf)]

@@ -77,8 +77,15 @@ def filters_table() -> str:
             + "; ".join(cmds) + ").\n\n" + HEAD + "\n" + "\n".join(row for *_, row in lines) + "\n")
 
 
-def nmpc_table() -> str:
-    recs, cmd = _records(DOCS / "nmpc" / "results.json")
+NMPC_RUNS = (("", "The real-time iteration (the default scheme)"),
+             ("ipopt", "IPOPT to convergence (`scheme=\"ipopt\"`), the first protocol run"))
+"""The NMPC's protocol runs under ``docs/nmpc``: folder and heading, the current scheme first."""
+
+
+def nmpc_table(sub: str = "") -> str:
+    """One NMPC protocol run's table, with the solver's account from its report."""
+    path = DOCS / "nmpc" / sub / "results.json"
+    recs, cmd = _records(path)
     order = {g: i for i, g in enumerate(GROUPS)}
     recs = sorted(recs, key=lambda r: (order.get(r["scenario"], 9), r["policy"]))
     rep = next((r["policy_report"] for r in recs if r.get("policy_report")), None)
@@ -90,12 +97,20 @@ def nmpc_table() -> str:
                   + (f" ({skipped:,} samples skipped while the fallback acted)" if skipped else "")
                   + f", each median {rep['solve_ms_median']:.1f} ms, 99th percentile {rep['solve_ms_p99']:.1f} ms, "
                   f"largest {rep['solve_ms_max']:.0f} ms per 10 ms sample (the estimator included); "
-                  f"{rep['fallbacks']:,} samples on the fallback; statuses "
-                  + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
-    return (f"Written by `python docs/control/tables.py` from `docs/nmpc/results.json` (`{cmd}`, "
+                  f"{rep['fallbacks']:,} samples on the fallback, {rep.get('estimator_restarts', 0):,} estimator "
+                  "restarts; statuses " + ", ".join(f"{k} {v:,}" for k, v in sorted(rep["statuses"].items())) + ".")
+    rel = path.relative_to(DOCS.parent).as_posix()
+    return (f"Written by `python docs/control/tables.py` from `{rel}` (`{cmd}`, "
             "docs/nmpc/run.sh). Wall time per episode: the group's share of the batches' wall time over its "
             "episodes, the NMPC's two solver processes on this 2-core machine (docs/model.md section 15 says what else ran)." + solver + "\n\n"
             + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
+
+
+def nmpc_page() -> str:
+    """Every NMPC protocol run found under ``docs/nmpc``, the current scheme first."""
+    parts = [f"## {title}\n\n{nmpc_table(sub)}" for sub, title in NMPC_RUNS
+             if (DOCS / "nmpc" / sub / "results.json").is_file()]
+    return "\n".join(parts)
 
 
 def pages() -> dict[Path, str]:
@@ -105,7 +120,7 @@ def pages() -> dict[Path, str]:
     if (DOCS / "filters_plain").is_dir():
         made[out / "filters.md"] = filters_table()
     if (DOCS / "nmpc" / "results.json").is_file():
-        made[out / "nmpc.md"] = nmpc_table()
+        made[out / "nmpc.md"] = nmpc_page()
     return made
 
 
