@@ -161,8 +161,12 @@ def plot_tradeoff(res: dict[str, Any], path: Path) -> None:
     from blf_gym.io import atomic_path
 
     groups = list(dict.fromkeys(r["group"] for r in res["rows"]))
-    fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 3.6), squeeze=False)
-    for ax, g in zip(axes[0], groups):
+    cols = min(2, len(groups))  # at most two panels a row: the docs' column is about 800 px wide
+    rows_n = -(-len(groups) // cols)
+    fig, axes = plt.subplots(rows_n, cols, figsize=(4.2 * cols, 3.4 * rows_n + 0.4), squeeze=False)
+    for ax in axes.flat[len(groups):]:
+        ax.set_visible(False)
+    for ax, g in zip(axes.flat, groups):
         rows = [r for r in res["rows"] if r["group"] == g]
         xs = [r["certificate_broken"] for r in rows]
         ys = [r["score_vs_law"] for r in rows]
@@ -177,7 +181,7 @@ def plot_tradeoff(res: dict[str, Any], path: Path) -> None:
     axes[0][0].legend(fontsize=8, loc="lower left")
     agent = Path(res["agent"])
     name = agent.parent.name if agent.suffix == ".zip" else agent.name
-    fig.suptitle(f"{name}: the barrier filter applied without retraining, at several margins m0")
+    fig.suptitle(f"{name}: the barrier filter applied without retraining,\nat several margins m0", fontsize=10)
     fig.tight_layout()
     with atomic_path(path, ".png") as tmp:
         fig.savefig(tmp, dpi=110)

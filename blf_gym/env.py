@@ -260,6 +260,15 @@ class PlanarBLFEnv(gym.Env):
         return self.core.scenarios[0]
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        """Start an episode: ``(observation, info)``.
+
+        ``seed`` (an integer >= 0) seeds the env's generator, which draws the episode's scenario
+        (on a suite) and its measurement noise; the same seed gives the same episode to the bit.
+        ``options`` varies this episode only: a mapping of the knobs of
+        :data:`blf_gym.scenarios.VARIATIONS` (e.g. ``{"force": 60.0}``), each checked
+        against its safe range (ValueError naming it otherwise). ``info`` holds the step's keys
+        (:data:`blf_gym.envcore.INFO_KEYS`) and ``"scenario"``, the episode's
+        ``Scenario`` (``blf_gym.params``)."""
         # checked before anything changes; a numpy integer seed is an integer
         seed = check_int("PlanarBLFEnv.reset:", "seed", seed, lo=0, none_ok=True)
         options = self.core.check_options(options)
@@ -280,6 +289,15 @@ class PlanarBLFEnv(gym.Env):
         return obs, info
 
     def step(self, action):
+        """Hold ``action`` over one control period: ``(observation, reward, terminated, truncated,
+        info)``.
+
+        ``action``: n numbers in [-1, 1] (values outside are clipped): the torque over
+        ``max_torque`` in plain mode, the residual over its scale in residual mode. NaN, inf or a
+        wrong shape raise ValueError. ``terminated`` is a constraint violation (with
+        ``terminate_on_violation``) or a diverged simulation (``info["termination_reason"]`` says which); ``truncated``
+        is the episode's end. After either, call :meth:`reset` (a further step raises
+        RuntimeError)."""
         if self._needs_reset:
             raise RuntimeError("call reset() before step(), and again after an episode ends")
         obs, rew, term, trunc, batch = self.core.step(action)
