@@ -45,7 +45,18 @@ PI_BOOTSTRAP_REPS = 500
 """Resamples for the probability of improvement's interval: rliable runs a Mann-Whitney test per
 episode per resample, so 50 episodes x 5,000 resamples would take minutes; 500 keep it to seconds."""
 
-_SEED = re.compile(r"^(?P<name>.+)_s(?P<seed>\d+)$")
+_SEED = re.compile(r"^(?P<name>.+)_s(?P<seed>\d+)(?P<suffix>\+.+)?$")
+"""A seeded agent's name, ``<name>_s<seed>``, with the ``+<filter>`` blf-eval adds when
+``--residual-filter`` runs every agent through a filter."""
+
+
+def seed_group(policy: str) -> tuple[str, int | None]:
+    """The group a policy's seeds pool into and its seed: ``("ppo_residual+barrier", 3)`` for
+    ``ppo_residual_s3+barrier``; ``(policy, None)`` for a name without a seed."""
+    m = _SEED.match(policy)
+    if m is None:
+        return policy, None
+    return m.group("name") + (m.group("suffix") or ""), int(m.group("seed"))
 
 
 def pool_seeds(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -53,8 +64,7 @@ def pool_seeds(records: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
     groups: dict[tuple[str, str], list[dict[str, Any]]] = defaultdict(list)
     order: list[tuple[str, str]] = []
     for r in records:
-        m = _SEED.match(r["policy"])
-        key = (m.group("name") if m else r["policy"], r["scenario"])
+        key = (seed_group(r["policy"])[0], r["scenario"])
         if key not in groups:
             order.append(key)
         groups[key].append(r)
@@ -92,8 +102,7 @@ def seed_statistics(records: Sequence[dict[str, Any]], reps: int = BOOTSTRAP_REP
     for r in records:
         if r.get("per_episode_score") is None:
             continue
-        m = _SEED.match(r["policy"])
-        groups[(m.group("name") if m else r["policy"], r["scenario"])].append(r)
+        groups[(seed_group(r["policy"])[0], r["scenario"])].append(r)
     out = []
     for (policy, scenario), recs in groups.items():
         lengths = {len(r["per_episode_score"]) for r in recs}
@@ -115,8 +124,7 @@ def seed_statistics(records: Sequence[dict[str, Any]], reps: int = BOOTSTRAP_REP
                 random_state=np.random.RandomState(0))
         seeds = []
         for r in recs:
-            m = _SEED.match(r["policy"])
-            seeds.append(r.get("train_seed", int(m.group("seed")) if m else None))
+            seeds.append(r.get("train_seed", seed_group(r["policy"])[1]))
         out.append({
             "policy": policy, "scenario": scenario, "kind": recs[0]["kind"], "seeds": seeds,
             "episodes": int(scores.shape[1]), "iqm": float(point["x"][0]),

@@ -506,6 +506,20 @@ def test_report_statistics_are_rliable_s_iqm_and_probability_of_improvement(tmp_
     assert {"iqm", "ci95", "prob_improvement"} <= set(data["statistics"][0])
 
 
+def test_report_pools_the_seeds_of_agents_blf_eval_ran_through_a_filter():
+    """blf-eval --residual-filter names each agent <name>_s<seed>+<filter>: its seeds pool into
+    <name>+<filter>, apart from the same agents without it (they once stayed five groups of one)."""
+    from agents.report import pool_seeds, seed_group
+
+    assert seed_group("cert_s3+barrier:handback=0.0033") == ("cert+barrier:handback=0.0033", 3)
+    assert seed_group("cert_s12") == ("cert", 12) and seed_group("proposed") == ("proposed", None)
+    base = {"kind": "residual", "scenario": "randomized", "rmse_deg": [1.0] * 3, "violations": [0] * 3,
+            "failure_rate": 0.0}
+    recs = [dict(base, policy=f"cert_s{s}{f}") for s in range(3) for f in ("", "+barrier:handback=0.0033")]
+    rows = {r["policy"]: r["seeds"] for r in pool_seeds(recs)}
+    assert rows == {"cert": 3, "cert+barrier:handback=0.0033": 3}
+
+
 def test_linear_schedules_in_configs(tmp_path):
     from agents.train import _schedule
 
