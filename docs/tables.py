@@ -270,6 +270,39 @@ def certificate_cases_table() -> str:
     return "\n".join(out + [row for _, row in rows]) + "\n"
 
 
+def certified_seeds_table() -> str:
+    """The certified residual's five training seeds through the barrier filter, without and with the
+    hand-back: rliable's IQM on the training suite and the presets, from
+    ``docs/protocol_certified_handback/{barrier,barrier_handback}/report.json``, and each seed on the
+    120 held-out certificate cases with the hand-back, from ``.../certificate_handback/results.json``
+    (``docs/protocol_certified_handback/run.sh``)."""
+    out = ["| filter | group | seeds x episodes | IQM score_vs_law [95 % CI] | failure rate | certificate_broken |",
+           "|---|---|---|---|---|---|"]
+    for folder, spec in (("barrier", "barrier"), ("barrier_handback", "barrier:handback=0.0033")):
+        stats = _load(f"protocol_certified_handback/{folder}", "report.json")["statistics"]
+        for g in ("randomized", "paper-0.1hz", "paper-0.5hz"):
+            st = next(x for x in stats if x["policy"].startswith("ppo_residual_certified") and x["scenario"] == g)
+            label = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
+            out.append(f"| `{spec}` | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
+                       f"{st['failure_rate']:.2f} | {st['certificate_broken']:.2f} |")
+    text = "\n".join(out) + "\n"
+    path = DOCS / "protocol_certified_handback" / "certificate_handback" / "results.json"
+    if path.is_file():
+        recs = _load("protocol_certified_handback/certificate_handback")["records"]
+        law = next(r for r in recs if r["kind"] == "baseline")
+        rows = ["| seed | episodes | score_vs_law | violating samples | failure rate | episodes breaking the certificate |",
+                "|---|---|---|---|---|---|",
+                f"| the law alone | {law['episodes']} | 1.000 | {sum(law['violations']):,} | {law['failure_rate']:.2f} | - |"]
+        agents = sorted((r for r in recs if r["kind"] != "baseline"),
+                        key=lambda r: int(re.search(r"_s(\d+)", r["policy"]).group(1)))
+        for r in agents:
+            seed = re.search(r"_s(\d+)", r["policy"]).group(1)
+            rows.append(f"| {seed} | {r['episodes']} | {r['score_vs_law']:.3f} | {sum(r['violations']):,} | "
+                        f"{r['failure_rate']:.2f} | {round(r['certificate_broken'] * r['episodes'])} |")
+        text += "\nOn the held-out certificate cases, with the hand-back:\n\n" + "\n".join(rows) + "\n"
+    return text
+
+
 def _triple(values: list[float], digits: int = 3) -> str:
     return " ".join(f"{v:.{digits}f}" for v in values)
 
@@ -732,7 +765,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},
     "docs/extending.md": {"signals": signals_table},
-    "docs/certificate.md": {"certificate-cases": certificate_cases_table},
+    "docs/certificate.md": {"certificate-cases": certificate_cases_table, "certified-seeds": certified_seeds_table},
 }
 """Page (from the repository's root) -> marker name -> the function that writes its table."""
 
