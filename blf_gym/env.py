@@ -295,9 +295,9 @@ class PlanarBLFEnv(gym.Env):
         ``action``: n numbers in [-1, 1] (values outside are clipped): the torque over
         ``max_torque`` in plain mode, the residual over its scale in residual mode. NaN, inf or a
         wrong shape raise ValueError. ``terminated`` is a constraint violation (with
-        ``terminate_on_violation``) or a diverged simulation (``info["termination_reason"]`` says which); ``truncated``
-        is the episode's end. After either, call :meth:`reset` (a further step raises
-        RuntimeError)."""
+        ``terminate_on_violation``) or a diverged simulation (``info["termination_reason"]`` says
+        which); ``truncated`` is the episode's end. After either, call :meth:`reset` (a further step
+        raises RuntimeError)."""
         if self._needs_reset:
             raise RuntimeError("call reset() before step(), and again after an episode ends")
         obs, rew, term, trunc, batch = self.core.step(action)
