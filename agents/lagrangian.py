@@ -125,14 +125,21 @@ class PPOLagrangian(PPO):
     :param lagrangian_lr: the multiplier's step size per unit of excess episode cost, >= 0 (0
         keeps the multiplier at ``lagrangian_init``: PPO with a fixed cost penalty; default 5e-4)
     :param lagrangian_init: the multiplier's initial value, >= 0 (default 0)
+    :param termination_cost: a cost added on a step that ends its episode by termination, not by
+        the time limit, >= 0 (default 0). The episode cost can otherwise be lowered by ending the
+        episode: on PlanarBLF with termination off, the learner met its limit by making the
+        simulation diverge within 0.15 s (docs/budget.md section 4). Set to at least what a whole
+        episode could cost (PlanarBLF: its control steps), a short episode cannot meet the limit.
 
     The other arguments are PPO's. Observations must be a ``Box`` (the cost critic is an MLP on
     the flattened observation).
     """
 
     def __init__(self, policy, env, cost_limit: float = 25.0, lagrangian_lr: float = 5e-4,
-                 lagrangian_init: float = 0.0, _init_setup_model: bool = True, **kwargs: Any) -> None:
+                 lagrangian_init: float = 0.0, termination_cost: float = 0.0, _init_setup_model: bool = True,
+                 **kwargs: Any) -> None:
         self.cost_limit = _check("cost_limit", cost_limit)
+        self.termination_cost = _check("termination_cost", termination_cost)
         self.lagrangian_lr = _check("lagrangian_lr", lagrangian_lr)
         self.lagrangian_init = _check("lagrangian_init", lagrangian_init)
         self.lagrangian_multiplier = self.lagrangian_init
@@ -183,6 +190,8 @@ class PPOLagrangian(PPO):
                 raise ValueError("PPOLagrangian reads the per-step cost from info['cost'], and the env's info has "
                                  f"no 'cost' (keys: {sorted(info)})")
             self._costs[t, i] = float(info["cost"])
+            if dones[i] and not info.get("TimeLimit.truncated", False):
+                self._costs[t, i] += self.termination_cost  # ended early: charged (0 by default)
         self._running_cost += self._costs[t]
         for i in np.flatnonzero(dones):
             self._rollout_episode_costs.append(float(self._running_cost[i]))

@@ -533,6 +533,8 @@ LAGRANGIAN_HYPERPARAMETERS = {
     "lagrangian_lr": ("lambda's step per unit of excess episode cost",
                       "finite, >= 0 (0: a fixed penalty `lagrangian_init`)"),
     "lagrangian_init": ("lambda at the start", "finite, >= 0"),
+    "termination_cost": ("cost added on a step that ends its episode by termination (not the time limit), so "
+                         "ending an episode early cannot lower its cost", "finite, >= 0 (0: none)"),
 }
 """What each of PPO-Lagrangian's own hyperparameters means and accepts."""
 

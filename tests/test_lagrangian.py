@@ -100,6 +100,30 @@ def test_episode_cost_is_carried_across_rollouts():
     assert m.lagrangian_multiplier == pytest.approx(1.0)
 
 
+class _Stop(_Toy):
+    """The toy's episodes cut short: terminated (not truncated) at the 4th step, costing 2."""
+
+    def step(self, action):
+        obs, rew, _, _, info = super().step(action)
+        return obs, rew, self.t >= 4, False, info
+
+
+def test_a_terminated_episode_is_charged_the_termination_cost_and_a_truncated_one_is_not():
+    """Ending an episode early must not lower its cost when termination_cost is set: 4-step
+    terminated episodes cost their 2 plus the charge, the toy's truncated 10-step ones only their 5."""
+    m = PPOLagrangian("MlpPolicy", VecMonitor(DummyVecEnv([_Stop, _Stop])), n_steps=8, batch_size=8, n_epochs=1,
+                      policy_kwargs={"net_arch": [8]}, seed=0, device="cpu", termination_cost=7.0)
+    m.learn(16)
+    assert list(m.ep_cost_buffer) == [9.0] * 4
+    m = _toy_model(20, termination_cost=7.0)
+    m.learn(40)
+    assert list(m.ep_cost_buffer) == [5.0] * 4  # time-limit truncations are not charged
+    m = PPOLagrangian("MlpPolicy", VecMonitor(DummyVecEnv([_Stop, _Stop])), n_steps=8, batch_size=8, n_epochs=1,
+                      policy_kwargs={"net_arch": [8]}, seed=0, device="cpu")
+    m.learn(16)
+    assert list(m.ep_cost_buffer) == [2.0] * 4  # 0, the default: the cost as the env reports it
+
+
 def test_multiplier_rises_on_the_plain_env_with_cost_limit_zero():
     m = PPOLagrangian("MlpPolicy", _plain_venv(), cost_limit=0.0, lagrangian_lr=0.01, **SMALL)
     m.learn(128)
@@ -119,7 +143,8 @@ def test_multiplier_falls_to_zero_with_a_huge_cost_limit():
 
 @pytest.mark.parametrize("field,value", [("cost_limit", -1.0), ("lagrangian_lr", -0.1), ("lagrangian_init", -2),
                                          ("cost_limit", float("nan")), ("lagrangian_lr", "5e-4"),
-                                         ("lagrangian_init", True)])
+                                         ("lagrangian_init", True), ("termination_cost", -3.0),
+                                         ("termination_cost", float("inf"))])
 def test_bad_hyperparameters_are_refused_by_name(field, value):
     with pytest.raises(ValueError, match=f"{field} must be a finite number >= 0"):
         PPOLagrangian("MlpPolicy", None, **{field: value})
