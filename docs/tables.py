@@ -416,9 +416,11 @@ def observation_variants_table(steps: int = 300_000) -> str:
 
 LAGRANGIAN_RUNS = (("lagrangian_s0_presets", "ppo_lagrangian_s0", "none"),
                   ("lagrangian_cur_s0_presets", "ppo_lagrangian_cur_s0", "`{bound_scale: 15, until: 1000000}`"),
-                  ("ppo_cur_s0_presets", "ppo_cur_s0", "`{bound_scale: 15, until: 1000000}`"))
+                  ("ppo_cur_s0_presets", "ppo_cur_s0", "`{bound_scale: 15, until: 1000000}`"),
+                  ("lagrangian_tc_s0_presets", "ppo_lagrangian_tc_s0", "none; termination_cost 3000"))
 """The seed-0 runs of budget.md section 4 (PPO-Lagrangian after its fix, without and with the funnel
-curriculum, and plain PPO with the same curriculum): folder under docs/budget, agent, curriculum."""
+curriculum, plain PPO with the same curriculum, and PPO-Lagrangian charged for terminated
+episodes): folder under docs/budget, agent, curriculum (and that charge)."""
 
 
 def lagrangian_presets_table() -> str:
