@@ -242,6 +242,9 @@ class NMPC:
         self.params = p = params
         n = p.nominal.n_links
         self.n, self.N, self.u_max = n, p.horizon, float(u_max)
+        if p.scheme == "rti" and not ca.has_conic(p.qp_solver):
+            raise ValueError(f"NMPCParams.qp_solver: {p.qp_solver!r} is not a QP plug-in of this CasADi build "
+                             "(e.g. 'hpipm', 'qrqp', 'osqp', 'qpoases')")
         if not (math.isfinite(self.u_max) and self.u_max > 0):
             raise ValueError(f"NMPC.u_max must be a positive number of N m, got {u_max!r}")
         f = casadi_dynamics(p.nominal, p.friction)

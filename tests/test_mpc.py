@@ -269,6 +269,8 @@ def test_the_registered_policy_runs_under_evaluate_policy():
     assert np.isfinite(mean) and pol.report()["solves"] == 10
     with pytest.raises(ValueError, match="unknown NMPC parameter"):
         make_policy("nmpc", horizon_s=1.0)
+    with pytest.raises(ValueError, match="NMPCParams.qp_solver"):
+        NMPC(NMPCParams(qp_solver="no_such_solver"), 150.0, compiled=False)
     with pytest.raises(ValueError, match="horizon x sample_period"):
         NMPCParams(horizon=40)
     with pytest.raises(ValueError, match="control_period"):

@@ -18,6 +18,8 @@ import argparse
 import json
 from pathlib import Path
 
+from blf_gym.io import atomic_path, atomic_write_text
+
 TAGS = ("lagrangian/mean_episode_cost", "lagrangian/cost_limit", "lagrangian/multiplier", "rollout/ep_rew_mean",
         "rollout/ep_len_mean", "curriculum/bound_scale")
 """The scalars kept: the cost the multiplier reads, its limit, the multiplier, the return, the
@@ -35,9 +37,7 @@ def export(run: Path, out: Path) -> None:
     acc.Reload()
     have = set(acc.Tags()["scalars"])
     log = {t: [[e.step, e.value] for e in acc.Scalars(t)] for t in TAGS if t in have}
-    tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(json.dumps({"run": run.name, "scalars": log}, indent=1) + "\n")
-    tmp.replace(out)
+    atomic_write_text(out, json.dumps({"run": run.name, "scalars": log}, indent=1) + "\n")
     print(f"wrote {out} ({', '.join(f'{t}: {len(v)}' for t, v in log.items())})")
 
 
@@ -85,10 +85,9 @@ def plot(log_path: Path, curve_path: Path, out: Path) -> None:
         a.set_xlabel("agent steps")
     fig.suptitle(f"{log['run']}: training log and learning curve", fontsize=11)
     fig.tight_layout()
-    tmp = out.with_name(out.stem + ".tmp.png")
-    fig.savefig(tmp, dpi=100)
+    with atomic_path(out, ".png") as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    tmp.replace(out)
     print(f"wrote {out}")
 
 
