@@ -130,16 +130,31 @@ class PPOLagrangian(PPO):
         episode: on PlanarBLF with termination off, the learner met its limit by making the
         simulation diverge within 0.15 s (docs/budget.md section 4). Set to at least what a whole
         episode could cost (PlanarBLF: its control steps), a short episode cannot meet the limit.
+    :param cost_limit_start: a schedule on the limit: the limit at step 0, >= 0, from which it moves
+        linearly to ``cost_limit`` over the first ``cost_limit_steps`` agent steps and stays there
+        (default None: ``cost_limit`` throughout). Started near what the untrained policy costs, the
+        constraint is never far from what the policy can meet, so the multiplier grows only as fast
+        as the limit tightens (docs/budget.md section 4).
+    :param cost_limit_steps: the agent steps over which the limit moves from ``cost_limit_start`` to
+        ``cost_limit``, an integer > 0 when ``cost_limit_start`` is set (default 0)
 
     The other arguments are PPO's. Observations must be a ``Box`` (the cost critic is an MLP on
     the flattened observation).
     """
 
     def __init__(self, policy, env, cost_limit: float = 25.0, lagrangian_lr: float = 5e-4,
-                 lagrangian_init: float = 0.0, termination_cost: float = 0.0, _init_setup_model: bool = True,
-                 **kwargs: Any) -> None:
+                 lagrangian_init: float = 0.0, termination_cost: float = 0.0, cost_limit_start: float | None = None,
+                 cost_limit_steps: int = 0, _init_setup_model: bool = True, **kwargs: Any) -> None:
         self.cost_limit = _check("cost_limit", cost_limit)
         self.termination_cost = _check("termination_cost", termination_cost)
+        self.cost_limit_start = None if cost_limit_start is None else _check("cost_limit_start", cost_limit_start)
+        if isinstance(cost_limit_steps, bool) or not isinstance(cost_limit_steps, (int, np.integer)) \
+                or cost_limit_steps < 0:
+            raise ValueError(f"PPOLagrangian: cost_limit_steps must be an integer >= 0, got {cost_limit_steps!r}")
+        if self.cost_limit_start is not None and cost_limit_steps == 0:
+            raise ValueError("PPOLagrangian: cost_limit_steps must be > 0 when cost_limit_start is set (the steps over "
+                             f"which the limit moves from {self.cost_limit_start:g} to {self.cost_limit:g}), got 0")
+        self.cost_limit_steps = int(cost_limit_steps)
         self.lagrangian_lr = _check("lagrangian_lr", lagrangian_lr)
         self.lagrangian_init = _check("lagrangian_init", lagrangian_init)
         self.lagrangian_multiplier = self.lagrangian_init
@@ -226,17 +241,26 @@ class PPOLagrangian(PPO):
         return True
 
     # ------------------------------------------------------------------ update
+    def current_cost_limit(self) -> float:
+        """The limit at the current step: ``cost_limit``, or, with ``cost_limit_start`` set, the
+        linear interpolation from it to ``cost_limit`` over the first ``cost_limit_steps`` agent
+        steps (``num_timesteps``, which counts on across a resumed run)."""
+        if self.cost_limit_start is None:
+            return self.cost_limit
+        frac = min(1.0, self.num_timesteps / self.cost_limit_steps)
+        return self.cost_limit_start + frac * (self.cost_limit - self.cost_limit_start)
+
     def train(self) -> None:
         """Update the multiplier from the rollout's episodes, run PPO's update on the penalised
         advantage, then fit the cost critic."""
         episodes = self._rollout_episode_costs
         if episodes:
             mean_cost = float(np.mean(episodes))
-            self.lagrangian_multiplier = update_multiplier(self.lagrangian_multiplier, mean_cost, self.cost_limit,
-                                                           self.lagrangian_lr)
+            self.lagrangian_multiplier = update_multiplier(self.lagrangian_multiplier, mean_cost,
+                                                           self.current_cost_limit(), self.lagrangian_lr)
             self.logger.record("lagrangian/mean_episode_cost", mean_cost)
         self.logger.record("lagrangian/multiplier", self.lagrangian_multiplier)
-        self.logger.record("lagrangian/cost_limit", self.cost_limit)
+        self.logger.record("lagrangian/cost_limit", self.current_cost_limit())
         self.logger.record("lagrangian/episodes", len(episodes))
         if self.ep_cost_buffer:
             self.logger.record("rollout/ep_cost_mean", float(np.mean(self.ep_cost_buffer)))

@@ -537,6 +537,10 @@ LAGRANGIAN_HYPERPARAMETERS = {
     "lagrangian_init": ("lambda at the start", "finite, >= 0"),
     "termination_cost": ("cost added on a step that ends its episode by termination (not the time limit), so "
                          "ending an episode early cannot lower its cost", "finite, >= 0 (0: none)"),
+    "cost_limit_start": ("the limit at step 0, moving linearly to `cost_limit` over `cost_limit_steps` agent "
+                         "steps", "finite, >= 0, or None (no schedule)"),
+    "cost_limit_steps": ("agent steps over which the limit moves from `cost_limit_start` to `cost_limit`",
+                         "integer >= 0; > 0 when `cost_limit_start` is set"),
 }
 """What each of PPO-Lagrangian's own hyperparameters means and accepts."""
 

@@ -88,6 +88,31 @@ def test_multiplier_follows_the_episode_cost_read_from_info_exactly():
     assert m.lagrangian_multiplier == 0.0
 
 
+def test_a_cost_limit_schedule_moves_the_limit_linearly_then_holds_it():
+    # 40 agent steps per rollout (20 x 2 envs), toy episodes costing 5: the multiplier updates after
+    # 40, 80 and 120 steps, against limits 5 + (1 - 5) * 40 / 80 = 3, then 1, then 1 (held)
+    m = _toy_model(20, cost_limit=1.0, cost_limit_start=5.0, cost_limit_steps=80, lagrangian_lr=0.1)
+    m.learn(40)
+    assert m.lagrangian_multiplier == pytest.approx(0.1 * (5 - 3))
+    m.learn(40, reset_num_timesteps=False)
+    assert m.lagrangian_multiplier == pytest.approx(0.1 * (5 - 3) + 0.1 * (5 - 1))
+    m.learn(40, reset_num_timesteps=False)
+    assert m.lagrangian_multiplier == pytest.approx(0.1 * (5 - 3) + 2 * 0.1 * (5 - 1))
+    assert m.current_cost_limit() == 1.0
+    # without a schedule the limit is cost_limit from the first rollout
+    assert _toy_model(20, cost_limit=1.0).current_cost_limit() == 1.0
+
+
+@pytest.mark.parametrize("kwargs,match", [({"cost_limit_start": 10.0}, "cost_limit_steps must be > 0"),
+                                          ({"cost_limit_start": -1.0, "cost_limit_steps": 5},
+                                           "cost_limit_start must be a finite number >= 0"),
+                                          ({"cost_limit_steps": -5}, "cost_limit_steps must be an integer >= 0"),
+                                          ({"cost_limit_steps": 2.5}, "cost_limit_steps must be an integer >= 0")])
+def test_a_bad_cost_limit_schedule_is_refused_by_name(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PPOLagrangian("MlpPolicy", None, **kwargs)
+
+
 def test_episode_cost_is_carried_across_rollouts():
     # 15-step rollouts cut the 10-step episodes: each episode must still add up to 5, and the
     # multiplier must move only on the episodes that ended in its rollout
