@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# The certified residual's five training seeds on the training suite's 20 held-out episodes,
-# through the barrier filter without and with the hand-back (docs/certificate.md), each with the
+# The certified residual's five training seeds on the protocol (the presets, the training suite's 20
+# held-out episodes and the stress suite's 100), through the barrier filter without and with the
+# hand-back (docs/certificate.md), each with the
 # seed statistics of python -m agents.report, and with the hand-back on the 120 held-out
 # certificate cases (the suite of docs/certificate_cases, never used for selection), into OUT
 # (default docs/protocol_certified_handback):
@@ -29,8 +30,8 @@ agents=()
 for s in 0 1 2 3 4; do agents+=("$runs/ppo_residual_certified_s$s"); done
 for spec in barrier barrier:handback=0.0033; do
     dir=$out/$(echo "$spec" | cut -d: -f1)$(case $spec in *handback*) echo _handback ;; esac)
-    blf-eval --controllers proposed --agents "${agents[@]}" --residual-filter "$spec" --suite randomized \
-        --suite-seeds 20 --out "$dir" --no-plots --no-progress
+    blf-eval --controllers proposed --agents "${agents[@]}" --residual-filter "$spec" --suite randomized stress \
+        --suite-seeds 20 100 --out "$dir" --no-plots --no-progress
     python -m agents.report "$dir/results.json" --out "$dir/seeds_table.md"
 done
 blf-eval --controllers proposed --agents "${agents[@]}" --residual-filter barrier:handback=0.0033 --scenarios \
