@@ -640,12 +640,15 @@ def test_sbx_algorithms_train_resume_and_are_judged_by_name(tmp_path):
 def test_the_multi_job_recipe_starts_resumes_and_then_leaves_a_run_alone(tmp_path):
     """docs/budget/run.sh, the README's recipe for a run split over several jobs: the same command
     starts the run, then extends it from its newest checkpoint (a second segment), then sees it
-    done and trains nothing."""
+    done and trains nothing. Between the two jobs the machine is lost: docs/budget/keep.sh kept the
+    run's newest checkpoint, and restores it into an empty folder, from which the run goes on."""
     import os
+    import shutil
     import subprocess
     import sys
 
     script = Path(__file__).resolve().parents[1] / "docs" / "budget" / "run.sh"
+    keep = script.with_name("keep.sh")
     out, cfg = tmp_path / "run", str(_tiny(tmp_path, "ppo"))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
 
@@ -658,6 +661,11 @@ def test_the_multi_job_recipe_starts_resumes_and_then_leaves_a_run_alone(tmp_pat
     job(64)
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["timesteps"] == 64 and len(meta["segments"]) == 1 and meta["completed"]
+    kept = tmp_path / "kept"
+    subprocess.run(["bash", str(keep), str(out), str(kept)], check=True, capture_output=True, timeout=60)
+    assert [p.name for p in (kept / "checkpoints").iterdir()] == ["step_64"]
+    shutil.rmtree(out)  # the job's machine is gone; only what was kept survives
+    subprocess.run(["bash", str(keep), "--restore", str(kept), str(out)], check=True, capture_output=True, timeout=60)
     job(128)
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["timesteps"] == 128 and meta["resumed"]

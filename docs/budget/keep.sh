@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Keep a long run across machines (docs/budget.md, "Running it"): only what is committed survives
+# the end of a job.
+#
+#   docs/budget/keep.sh RUN [KEPT]             # RUN -> KEPT (default docs/budget/runs/<RUN's name>)
+#   docs/budget/keep.sh --restore KEPT RUN     # KEPT -> RUN, then repeat the stage's run.sh command
+#
+# Keeping copies RUN's metadata.json, its learning curve (eval/curve.json, as curve.json) and its
+# newest complete checkpoint folder (checkpoints/step_<N>: a step_ folder is complete by
+# construction, agents/checkpoints.py) into KEPT, replacing the checkpoint kept before, so that a
+# commit holds one checkpoint per run. Restoring copies them back into RUN's layout.
+set -euo pipefail
+newest() {  # the newest step_<N> folder under $1/checkpoints, or nothing
+    local best="" n d
+    for d in "$1"/checkpoints/step_*; do
+        [ -d "$d" ] || continue
+        n=${d##*/step_}
+        case "$n" in ''|*[!0-9]*) continue ;; esac
+        if [ -z "$best" ] || [ "$n" -gt "${best##*/step_}" ]; then best=$d; fi
+    done
+    echo "$best"
+}
+if [ "${1:-}" = "--restore" ]; then
+    [ "$#" -eq 3 ] || { echo "usage: $0 --restore KEPT RUN" >&2; exit 2; }
+    kept=$2 run=$3
+    ck=$(newest "$kept")
+    [ -n "$ck" ] || { echo "$kept: no checkpoints/step_<N> folder to restore" >&2; exit 1; }
+    mkdir -p "$run/checkpoints" "$run/eval"
+    cp "$kept/metadata.json" "$run/metadata.json"
+    [ ! -f "$kept/curve.json" ] || cp "$kept/curve.json" "$run/eval/curve.json"
+    rm -rf "$run/checkpoints/${ck##*/}"
+    cp -r "$ck" "$run/checkpoints/"
+    echo "$run: restored ${ck##*/} from $kept"
+    exit 0
+fi
+[ "$#" -ge 1 ] && [ "$#" -le 2 ] || { echo "usage: $0 RUN [KEPT]  |  $0 --restore KEPT RUN" >&2; exit 2; }
+run=${1%/}
+kept=${2:-docs/budget/runs/$(basename "$run")}
+ck=$(newest "$run")
+[ -n "$ck" ] || { echo "$run: no complete checkpoint yet (checkpoints/step_<N>)" >&2; exit 1; }
+mkdir -p "$kept/checkpoints"
+tmp=$(mktemp -d "$kept/checkpoints/.keep.XXXXXX")
+cp -r "$ck" "$tmp/"
+cp "$run/metadata.json" "$tmp/metadata.json"
+[ ! -f "$run/eval/curve.json" ] || cp "$run/eval/curve.json" "$tmp/curve.json"
+# the new checkpoint is whole before the old one goes
+for d in "$kept"/checkpoints/step_*; do [ -d "$d" ] && rm -rf "$d"; done
+mv "$tmp/${ck##*/}" "$kept/checkpoints/"
+mv "$tmp/metadata.json" "$kept/metadata.json"
+[ ! -f "$tmp/curve.json" ] || mv "$tmp/curve.json" "$kept/curve.json"
+rmdir "$tmp"
+echo "$kept: kept ${ck##*/} of $run"
