@@ -212,15 +212,14 @@ CERTIFICATE_KINDS = (("early force", 0.4), ("corner", 0.3), ("uniform", 0.3))
 
 
 def _knob_table() -> str:
+    """:data:`KNOBS` as a Markdown table (read as text by ``help()``, rendered by the docs site)."""
     def rng(r: tuple[float, float], k: Knob) -> str:
-        return f"|e| <= {r[1]:g}" if k.per_joint and r[0] == -r[1] else f"[{r[0]:g}, {r[1]:g}]"
+        return f"[{r[0]:g}, {r[1]:g}]" + (" per joint" if k.per_joint else "")
 
     rows = [(f"``{k.name}``", k.unit or "-", rng(k.safe, k), rng(k.suite, k), k.meaning) for k in KNOBS]
     head = ("knob", "unit", "safe range", "training suite", "meaning")
-    w = [max(len(r[i]) for r in [head, *rows]) for i in range(5)]
-    rule = "  ".join("=" * x for x in w)
-    line = lambda r: "  ".join(c.ljust(x) for c, x in zip(r, w)).rstrip()
-    return "\n".join([rule, line(head), rule, *map(line, rows), rule])
+    line = lambda r: "| " + " | ".join(r) + " |"
+    return "\n".join([line(head), "|" + "---|" * len(head), *map(line, rows)])
 
 
 __doc__ = __doc__.replace("{knob_table}", _knob_table())

@@ -100,3 +100,30 @@ def test_the_readme_is_short_and_names_no_tracker_issue():
     hits = [f"{p.relative_to(ROOT)}: {m.group(0)}" for p in pages
             for m in re.finditer(r"\b[Ii]ssues? \d+\b", p.read_text())]
     assert not hits, hits
+
+
+def _visible_text(html: str) -> str:
+    """A page's text as a reader sees it, without code blocks, scripts and styles, line breaks kept."""
+    body = re.sub(r"<pre\b.*?</pre>", "", html, flags=re.S)
+    body = re.sub(r"<(script|style)\b.*?</\1>", "", body, flags=re.S)
+    return re.sub(r"<[^>]+>", "", body)
+
+
+def test_no_page_shows_raw_markdown_or_an_unfilled_docstring(site):
+    """What Markdown or mkdocstrings failed to render shows as text: a list item indented too little
+    for Python-Markdown, or with no blank line before its list, stays a text line starting with
+    ``* ``; a docstring filled in at run time shows its ``{placeholder}``; TeX the math hook missed
+    keeps its dollar signs and backslashes."""
+    raw_bullets, placeholders, tex = [], [], []
+    for f in sorted(site.rglob("*.html")):
+        if f.parts[-2] == "search":
+            continue
+        html = f.read_text()
+        text = _visible_text(html)
+        name = str(f.relative_to(site))
+        raw_bullets += [f"{name}: {m.group(0).strip()[:80]!r}" for m in re.finditer(r"(?:^|\n)[ \t]*\* \S[^\n]*", text)]
+        tex += [f"{name}: {m.group(0)[:80]!r}" for m in re.finditer(r"\$[^$\s][^$\n]*\\[a-zA-Z]+[^$\n]*\$", text)]
+        placeholders += [f"{name}: {m.group(0)}" for m in re.finditer(r"\{[a-z_]+_(?:table|rows)\}", html)]
+    assert not raw_bullets, raw_bullets
+    assert not placeholders, placeholders
+    assert not tex, tex
