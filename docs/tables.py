@@ -56,7 +56,7 @@ HEADLINE = (
     ("nonlinear MPC", "control", "nmpc", "nmpc", "control/nmpc.md"),
     ("PPO residual over the law (seed 0 of 5)", "learning + law", "protocol_learners", "ppo_residual",
      "results.md"),
-    ("PPO residual, barrier-filtered (seed 0 of 5)", "learning + law", "protocol_learners",
+    ("PPO residual, barrier filter with hand-back (seed 0 of 5)", "learning + law", "protocol_learners",
      "ppo_residual_certified", "results.md"),
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
@@ -69,15 +69,16 @@ _GROUPS = ("paper-0.1hz", "paper-0.5hz", "randomized", "stress")
 """The protocol's four groups, in table order."""
 
 
-def headline_table(prefix: str = "") -> str:
+def headline_table(prefix: str = "", here: str = "") -> str:
     """One row per method of :data:`HEADLINE`: ``score_vs_law`` on the presets, the training suite's
-    held-out episodes and the stress suite (pooled RMSEs), the failure rates and the stress suite's
-    ``certificate_broken``; links are ``prefix`` + the page (the README passes ``docs/``). A method
-    whose results file is absent is left out."""
+    held-out episodes and the stress suite (pooled RMSEs), the failures (presets failed of 2, and the
+    suites' failure rates) and the stress suite's ``certificate_broken``. Each method links to the
+    page with its full table, ``prefix`` + the page (the README passes ``docs/``), unless that page
+    is ``here``. A method whose results file is absent is left out."""
     cache: dict[str, list[dict]] = {}
-    lines = ["| method | kind | score 0.1 Hz / 0.5 Hz | score, training suite | score, stress | "
-             "failure rate, training / stress | certificate broken, stress | full table |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| method (its full table) | kind | score 0.1 Hz / 0.5 Hz | score, training suite | score, stress | "
+             "failures: presets / training / stress | certificate broken, stress |",
+             "|---|---|---|---|---|---|---|"]
     for label, kind, folder, policy, page in HEADLINE:
         path = DOCS / folder / "results.json"
         if not path.is_file():
@@ -93,9 +94,11 @@ def headline_table(prefix: str = "") -> str:
             v = rec[g]["score_vs_law"]
             return "-" if v is None else f"{v:.3f}"
 
-        lines.append(f"| {label} | {kind} | {sc('paper-0.1hz')} / {sc('paper-0.5hz')} | {sc('randomized')} | "
-                     f"{sc('stress')} | {rec['randomized']['failure_rate']:.2f} / {rec['stress']['failure_rate']:.2f} | "
-                     f"{rec['stress']['certificate_broken']:.2f} | [{page}]({prefix}{page}) |")
+        presets = sum(rec[g]["failure_rate"] > 0 for g in ("paper-0.1hz", "paper-0.5hz"))
+        name = label if page == here else f"[{label}]({prefix}{page})"
+        lines.append(f"| {name} | {kind} | {sc('paper-0.1hz')} / {sc('paper-0.5hz')} | {sc('randomized')} | "
+                     f"{sc('stress')} | {presets} of 2 / {rec['randomized']['failure_rate']:.2f} / "
+                     f"{rec['stress']['failure_rate']:.2f} | {rec['stress']['certificate_broken']:.2f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -136,12 +139,13 @@ def _pick(records: list[dict], policy: str, scenario: str) -> dict:
 def protocol_table() -> str:
     """The laws and the shipped agents of the default run, per group: BC, LESOBC and the proposed
     law, seed 0 of the residual and of the certified residual, and the first plain agent, from
-    ``docs/protocol/results.json`` (the certified agent from ``docs/protocol_learners/``)."""
+    ``docs/protocol/results.json`` (the certified and the plain agent from ``docs/protocol_learners/``,
+    the main job's latest run)."""
     main, learners = _load("protocol")["records"], _load("protocol_learners")["records"]
     rows = [("BC", main, "bc"), ("LESOBC", main, "lesobc"), ("proposed", main, "proposed"),
             ("**ppo_residual** (seed 0)", main, "ppo_residual_s0"),
             ("**ppo_residual_certified** (seed 0)", learners, "ppo_residual_certified"),
-            ("ppo_plain", main, "ppo_plain")]
+            ("ppo_plain", learners, "ppo_plain")]
     out = ["| policy | group | RMSE j1 (deg) | j2 | j3 | score_vs_law | violating samples | failure rate | "
            "certificate_broken |", "|---|---|---|---|---|---|---|---|---|"]
     for g in _GROUPS:
@@ -176,6 +180,37 @@ def statistics_table(folder: str, policies: tuple[str, ...], report: str = "repo
                 continue
             label = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
             out.append(f"| {policy} | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
+                       f"{_ci(st, 'prob_improvement', 2)} | {st['failure_rate']:.2f} | "
+                       f"{st['certificate_broken']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
+CERTIFIED_ROWS = (
+    # label, folder under docs/, its report, the policy name there (a seed-pooled group)
+    ("proposed", "protocol_certified", "report.json", "proposed"),
+    ("ppo_residual", "protocol_certified", "report.json", "ppo_residual"),
+    ("ppo_residual_certified, `barrier`", "protocol_certified_handback/barrier", "report.json",
+     "ppo_residual_certified"),
+    ("**ppo_residual_certified, `barrier:handback=0.0033`** (shipped)", "protocol_certified_handback/barrier_handback",
+     "report.json", "ppo_residual_certified+barrier:handback=0.0033"),
+)
+"""The certified-statistics table's rows: the law and the unfiltered residual's five seeds, and the
+certified residual's five seeds through the barrier filter without and with the hand-back."""
+
+
+def certified_statistics_table() -> str:
+    """rliable's statistics per group for :data:`CERTIFIED_ROWS`, each from its own run's
+    ``python -m agents.report`` JSON (as :func:`statistics_table`)."""
+    reports = {folder: _load(folder, report)["statistics"] for _, folder, report, _ in CERTIFIED_ROWS}
+    out = ["| policy | group | seeds x episodes | IQM score_vs_law [95 % CI] | P(improvement over the law) "
+           "[95 % CI] | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|"]
+    for g in _GROUPS:
+        for label, folder, _, policy in CERTIFIED_ROWS:
+            st = next((x for x in reports[folder] if x["policy"] == policy and x["scenario"] == g), None)
+            if st is None:
+                raise ValueError(f"docs/{folder} has no statistics for {policy} on {g}")
+            group = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
+            out.append(f"| {label} | {group} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
                        f"{_ci(st, 'prob_improvement', 2)} | {st['failure_rate']:.2f} | "
                        f"{st['certificate_broken']:.2f} |")
     return "\n".join(out) + "\n"
@@ -272,7 +307,7 @@ def certificate_cases_table() -> str:
 
 def certified_seeds_table() -> str:
     """The certified residual's five training seeds through the barrier filter, without and with the
-    hand-back: rliable's IQM on the training suite and the presets, from
+    hand-back: rliable's IQM on the training suite, the stress suite and the presets, from
     ``docs/protocol_certified_handback/{barrier,barrier_handback}/report.json``, and each seed on the
     120 held-out certificate cases with the hand-back, from ``.../certificate_handback/results.json``
     (``docs/protocol_certified_handback/run.sh``)."""
@@ -280,7 +315,7 @@ def certified_seeds_table() -> str:
            "|---|---|---|---|---|---|"]
     for folder, spec in (("barrier", "barrier"), ("barrier_handback", "barrier:handback=0.0033")):
         stats = _load(f"protocol_certified_handback/{folder}", "report.json")["statistics"]
-        for g in ("randomized", "paper-0.1hz", "paper-0.5hz"):
+        for g in ("randomized", "stress", "paper-0.1hz", "paper-0.5hz"):
             st = next(x for x in stats if x["policy"].startswith("ppo_residual_certified") and x["scenario"] == g)
             label = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
             out.append(f"| `{spec}` | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
@@ -751,13 +786,12 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/")},
     "docs/reproduction.md": {"reproduction": reproduction_table},
     "docs/results.md": {
-        "headline": headline_table,
+        "headline": lambda: headline_table(here="results.md"),
         "protocol": protocol_table,
         "seed-statistics": lambda: statistics_table("", ("proposed", "ppo_residual", "bc", "lesobc"),
                                                     "seeds_report.json"),
         "seeds": seeds_table,
-        "certified-statistics": lambda: statistics_table("protocol_certified",
-                                                         ("proposed", "ppo_residual", "ppo_residual_certified")),
+        "certified-statistics": certified_statistics_table,
         "learners": learners_table,
     },
     "docs/environment.md": {

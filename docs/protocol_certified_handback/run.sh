@@ -23,7 +23,9 @@ s0=$runs/ppo_residual_certified_s0
 if [ ! -f "$s0/model.zip" ]; then
     mkdir -p "$s0"
     cp agents/pretrained/ppo_residual_certified/model.zip agents/pretrained/ppo_residual_certified/vecnormalize.pkl "$s0/"
-    python -c "import json, sys; m = json.load(open(sys.argv[1])); m['name'] = 'ppo_residual_certified_s0'; json.dump(m, open(sys.argv[2], 'w'), indent=2)" \
+    # named like seeds 1-4 and with the filter they were trained with, so that --residual-filter
+    # names all five alike (the shipped metadata deploys it with the hand-back)
+    python -c "import json, sys; m = json.load(open(sys.argv[1])); m['name'] = 'ppo_residual_certified_s0'; m['env_kwargs']['residual_filter'] = 'barrier'; json.dump(m, open(sys.argv[2], 'w'), indent=2)" \
         agents/pretrained/ppo_residual_certified/metadata.json "$s0/metadata.json"
 fi
 agents=()
