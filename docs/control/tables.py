@@ -25,8 +25,13 @@ GROUPS = {"paper-0.1hz": "0.1 Hz", "paper-0.5hz": "0.5 Hz", "randomized": "train
 
 
 def _records(path: Path) -> tuple[list[dict], str]:
+    """A results file's records and the command that wrote it, its ``--out`` shown as ``OUT`` when
+    that was a scratch folder outside the repository's ``docs/``."""
+    import re
+
     data = json.loads(path.read_text())
-    return data["records"], data["provenance"].get("command", "?")
+    cmd = data["provenance"].get("command", "?")
+    return data["records"], re.sub(r"--out (?!docs/)\S+", "--out OUT", cmd)
 
 
 def _row(r: dict, name: str | None = None) -> str:
@@ -113,14 +118,37 @@ def nmpc_page() -> str:
     return "\n".join(parts)
 
 
+TITLES = {
+    "protocol.md": ("The control side on the protocol",
+                    "Every registered controller on the benchmark's protocol, the paper's laws beside "
+                    "prescribed-performance and funnel control ([the model](../model.md), sections 12 and 13, "
+                    "gives their equations and gains). `score_vs_law` is against the proposed law with the "
+                    "paper's gains; a failure is an episode with a violation or a divergence."),
+    "filters.md": ("Filters around the plain agents",
+                   "The shipped plain agents (their whole torque from the network) with no filter, and through "
+                   "the barrier and the CBF filter, each without and with the hand-back "
+                   "([the certificate](../certificate.md) says what each filter guarantees)."),
+    "nmpc.md": ("Nonlinear MPC on the protocol",
+                "The NMPC policy ([the model, section 15](../model.md#15-nonlinear-mpc-nmpc)) beside the proposed "
+                "law, with its solver's account. Its rows come from one named command, `docs/nmpc/run.sh`, since "
+                "it is too slow for the main job's default set."),
+}
+"""Each page's title and first paragraph, above its generated tables."""
+
+
+def _page(name: str, body: str) -> str:
+    title, lead = TITLES[name]
+    return f"# {title}\n\n{lead}\n\n{body}"
+
+
 def pages() -> dict[Path, str]:
     """Every page this script writes, with its text (a page whose results are absent is left out)."""
     out = DOCS / "control"
-    made = {out / "protocol.md": protocol_table()}
+    made = {out / "protocol.md": _page("protocol.md", protocol_table())}
     if (DOCS / "filters_plain").is_dir():
-        made[out / "filters.md"] = filters_table()
+        made[out / "filters.md"] = _page("filters.md", filters_table())
     if (DOCS / "nmpc" / "results.json").is_file():
-        made[out / "nmpc.md"] = nmpc_page()
+        made[out / "nmpc.md"] = _page("nmpc.md", nmpc_page())
     return made
 
 
