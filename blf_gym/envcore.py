@@ -67,8 +67,9 @@ ARGUMENTS: tuple[Argument, ...] = (
     Argument("scenario", "-", '"paper-0.1hz", "paper-0.5hz", "randomized", "stress" or a Scenario',
              'the episode\'s plant, reference, bounds and disturbances; "randomized" draws the training suite per '
              'episode, "stress" the held-out stress suite (for evaluation only)'),
-    Argument("controller", "-", 'None, "bc", "lesobc", "proposed", a registered plug-in\'s name or a Controller',
-             "None: plain mode, the action is the torque. A law: residual mode, u = u_law + residual_scale * a, "
+    Argument("controller", "-", 'None or "none", "bc", "lesobc", "proposed", a registered plug-in\'s name or a '
+             'Controller',
+             "None (or \"none\"): plain mode, the action is the torque. A law: residual mode, u = u_law + residual_scale * a, "
              "the law run at every integration stage"),
     Argument("observer", "-", '"leso", a registered name or an Observer providing x2_hat and x3_hat',
              "the state observer inside the env (the observation's velocity and disturbance estimates)"),
