@@ -8,7 +8,9 @@
 # Keeping copies RUN's metadata.json, its learning curve (eval/curve.json, as curve.json) and its
 # newest complete checkpoint folder (checkpoints/step_<N>: a step_ folder is complete by
 # construction, agents/checkpoints.py) into KEPT, replacing the checkpoint kept before, so that a
-# commit holds one checkpoint per run. Restoring copies them back into RUN's layout.
+# commit holds one checkpoint per run. A finished run's model (model.zip, and vecnormalize.pkl when
+# it has one) is kept too, so that `blf-eval --agents KEPT` scores it as it is. Restoring copies
+# the metadata, curve and checkpoint back into RUN's layout.
 set -euo pipefail
 newest() {  # the newest step_<N> folder under $1/checkpoints, or nothing
     local best="" n d
@@ -43,10 +45,12 @@ tmp=$(mktemp -d "$kept/checkpoints/.keep.XXXXXX")
 cp -r "$ck" "$tmp/"
 cp "$run/metadata.json" "$tmp/metadata.json"
 [ ! -f "$run/eval/curve.json" ] || cp "$run/eval/curve.json" "$tmp/curve.json"
+for f in model.zip vecnormalize.pkl; do [ ! -f "$run/$f" ] || cp "$run/$f" "$tmp/$f"; done
 # the new checkpoint is whole before the old one goes
 for d in "$kept"/checkpoints/step_*; do [ -d "$d" ] && rm -rf "$d"; done
 mv "$tmp/${ck##*/}" "$kept/checkpoints/"
 mv "$tmp/metadata.json" "$kept/metadata.json"
 [ ! -f "$tmp/curve.json" ] || mv "$tmp/curve.json" "$kept/curve.json"
+for f in model.zip vecnormalize.pkl; do [ ! -f "$tmp/$f" ] || mv "$tmp/$f" "$kept/$f"; done
 rmdir "$tmp"
 echo "$kept: kept ${ck##*/} of $run"
