@@ -454,10 +454,13 @@ def observation_variants_table(steps: int = 300_000) -> str:
 LAGRANGIAN_RUNS = (("lagrangian_s0_presets", "ppo_lagrangian_s0", "none"),
                   ("lagrangian_cur_s0_presets", "ppo_lagrangian_cur_s0", "`{bound_scale: 15, until: 1000000}`"),
                   ("ppo_cur_s0_presets", "ppo_cur_s0", "`{bound_scale: 15, until: 1000000}`"),
-                  ("lagrangian_tc_s0_presets", "ppo_lagrangian_tc_s0", "none; termination_cost 3000"))
+                  ("lagrangian_tc_s0_presets", "ppo_lagrangian_tc_s0", "none; termination_cost 3000"),
+                  ("lagrangian_sched_s0_presets", "ppo_lagrangian_sched_s0",
+                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps"))
 """The seed-0 runs of budget.md section 4 (PPO-Lagrangian after its fix, without and with the funnel
-curriculum, plain PPO with the same curriculum, and PPO-Lagrangian charged for terminated
-episodes): folder under docs/budget, agent, curriculum (and that charge)."""
+curriculum, plain PPO with the same curriculum, PPO-Lagrangian charged for terminated episodes, and
+with a cost-limit schedule as well): folder under docs/budget, agent, curriculum (and the other
+set-up changes)."""
 
 
 def lagrangian_presets_table() -> str:
@@ -465,7 +468,7 @@ def lagrangian_presets_table() -> str:
     (``blf-eval --agents docs/budget/runs/<agent> --suite-seeds 0 --out DIR``), against the item's
     targets: no divergence, no turnover, at most 10 % violating samples; a run not yet scored is
     left out."""
-    out = ["| run | curriculum | preset | RMSE per joint (deg) | violating samples (worst joint's share) | "
+    out = ["| run | set-up (curriculum; other changes) | preset | RMSE per joint (deg) | violating samples (worst joint's share) | "
            "largest excursion beyond a bound (deg) | diverged | score_vs_law |", "|---|---|---|---|---|---|---|---|"]
     for folder, agent, curriculum in LAGRANGIAN_RUNS:
         if not (DOCS / "budget" / folder / "results.json").is_file():

@@ -107,7 +107,8 @@ def nmpc_table(sub: str = "") -> str:
     rel = path.relative_to(DOCS.parent).as_posix()
     return (f"Written by `python docs/control/tables.py` from `{rel}` (`{cmd}`, "
             "docs/nmpc/run.sh). Wall time per episode: the group's share of the batches' wall time over its "
-            "episodes, the NMPC's two solver processes on this 2-core machine (docs/model.md section 15 says what else ran)." + solver + "\n\n"
+            "episodes, the NMPC's two solver processes on this 2-core machine ([docs/model.md section 15]"
+            "(../model.md#15-nonlinear-mpc-nmpc) says what else ran)." + solver + "\n\n"
             + HEAD + "\n" + "\n".join(_row(r) for r in recs) + "\n")
 
 
