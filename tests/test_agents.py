@@ -672,6 +672,10 @@ def test_the_multi_job_recipe_starts_resumes_and_then_leaves_a_run_alone(tmp_pat
     assert [(s["start_timesteps"], s["end_timesteps"]) for s in meta["segments"]] == [(0, 64), (64, 128)]
     assert "this stage is done" in job(128)
     assert len(json.loads((out / "metadata.json").read_text())["segments"]) == 2
+    # restoring the older kept checkpoint over a run that is further along changes nothing
+    p = subprocess.run(["bash", str(keep), "--restore", str(kept), str(out)], capture_output=True, text=True, timeout=60)
+    assert p.returncode == 0 and "nothing restored" in p.stdout
+    assert json.loads((out / "metadata.json").read_text())["timesteps"] == 128
     # the finished run, kept, is an agent blf-eval loads as it is: its model beside the checkpoint
     subprocess.run(["bash", str(keep), str(out), str(kept)], check=True, capture_output=True, timeout=60)
     assert [p.name for p in (kept / "checkpoints").iterdir()] == ["step_128"]

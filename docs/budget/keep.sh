@@ -3,7 +3,8 @@
 # the end of a job.
 #
 #   docs/budget/keep.sh RUN [KEPT]             # RUN -> KEPT (default docs/budget/runs/<RUN's name>)
-#   docs/budget/keep.sh --restore KEPT RUN     # KEPT -> RUN, then repeat the stage's run.sh command
+#   docs/budget/keep.sh --restore KEPT RUN     # KEPT -> RUN (unless RUN is as far already), then
+#                                              # repeat the stage's run.sh command
 #
 # Keeping copies RUN's metadata.json, its learning curve (eval/curve.json, as curve.json) and its
 # newest complete checkpoint folder (checkpoints/step_<N>: a step_ folder is complete by
@@ -27,6 +28,11 @@ if [ "${1:-}" = "--restore" ]; then
     kept=$2 run=$3
     ck=$(newest "$kept")
     [ -n "$ck" ] || { echo "$kept: no checkpoints/step_<N> folder to restore" >&2; exit 1; }
+    have=$(newest "$run")
+    if [ -n "$have" ] && [ "${have##*/step_}" -ge "${ck##*/step_}" ]; then
+        echo "$run: already at ${have##*/} (kept: ${ck##*/}); nothing restored"
+        exit 0
+    fi
     mkdir -p "$run/checkpoints" "$run/eval"
     cp "$kept/metadata.json" "$run/metadata.json"
     [ ! -f "$kept/curve.json" ] || cp "$kept/curve.json" "$run/eval/curve.json"
