@@ -456,7 +456,9 @@ LAGRANGIAN_RUNS = (("lagrangian_s0_presets", "ppo_lagrangian_s0", "none"),
                   ("ppo_cur_s0_presets", "ppo_cur_s0", "`{bound_scale: 15, until: 1000000}`"),
                   ("lagrangian_tc_s0_presets", "ppo_lagrangian_tc_s0", "none; termination_cost 3000"),
                   ("lagrangian_sched_s0_presets", "ppo_lagrangian_sched_s0",
-                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps"))
+                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps"),
+                  ("lagrangian_shaped_s0_presets", "ppo_lagrangian_shaped_s0",
+                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps; plain PPO's reward"))
 """The seed-0 runs of budget.md section 4 (PPO-Lagrangian after its fix, without and with the funnel
 curriculum, plain PPO with the same curriculum, PPO-Lagrangian charged for terminated episodes, and
 with a cost-limit schedule as well): folder under docs/budget, agent, curriculum (and the other
