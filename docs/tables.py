@@ -218,6 +218,57 @@ def certified_statistics_table() -> str:
     return "\n".join(out) + "\n"
 
 
+VERDICT_ROWS = (
+    # label, the report (folder under docs/), its pooled policy name, the runs' metadata files (globs)
+    ("PPO residual over the law", "protocol_certified", "ppo_residual", ("agents/pretrained/ppo_residual",)),
+    ("PPO residual, barrier filter with hand-back", "protocol_certified_handback/barrier_handback",
+     "ppo_residual_certified+barrier:handback=0.0033",
+     ("agents/pretrained/ppo_residual_certified", "docs/protocol_certified/runs/ppo_residual_certified_s*")),
+    ("plain PPO at scale (sbx)", "budget/protocol_scale", "sbx_ppo_256", ("docs/budget/runs/sbx_ppo_256_s*",)),
+)
+"""The learners of the verdict: rliable's statistics over their seeds, beside their budgets."""
+
+
+def _budget(globs: tuple[str, ...]) -> tuple[int, str, str]:
+    """(runs, agent steps per run, wall clock per run) from the runs' metadata: the range over runs
+    when they differ. A run whose metadata is not in the repository (the residual's seeds 1-4) is
+    not counted."""
+    import json
+
+    metas = [json.loads((f / "metadata.json").read_text()) for g in globs for f in sorted(ROOT.glob(g))
+             if (f / "metadata.json").is_file()]
+    steps = sorted({int(m["timesteps"]) for m in metas})
+    walls = sorted(float(m["wall_s"]) for m in metas)
+
+    def span(lo: float, hi: float, fmt) -> str:
+        return fmt(lo) if fmt(lo) == fmt(hi) else f"{fmt(lo)} to {fmt(hi)}"
+
+    return (len(metas), span(steps[0], steps[-1], lambda v: f"{v / 1e6:.1f}M"),
+            span(walls[0], walls[-1], lambda v: f"{v / 3600:.1f} h" if v >= 3600 else f"{v / 60:.0f} min"))
+
+
+def verdict_table() -> str:
+    """Each learner of :data:`VERDICT_ROWS`: seeds, agent steps and wall clock per run (from the runs'
+    kept metadata), and rliable's IQM ``score_vs_law`` over seeds x episodes with its 95 % interval
+    and the failure rate, on the training suite's held-out episodes and on the stress suite."""
+    out = ["| learner | seeds | agent steps per run | wall clock per run | IQM, training suite [95 % CI] | "
+           "IQM, stress [95 % CI] | failure rate, training / stress |", "|---|---|---|---|---|---|---|"]
+    for label, folder, policy, globs in VERDICT_ROWS:
+        stats = _load(folder, "report.json")["statistics"]
+        st = {x["scenario"]: x for x in stats if x["policy"] == policy}
+        missing = [g for g in ("randomized", "stress") if g not in st]
+        if missing:
+            raise ValueError(f"docs/{folder}/report.json has no statistics for {policy} on {missing}")
+        kept, steps, wall = _budget(globs)
+        seeds = len(st["randomized"]["seeds"])
+        if kept < seeds:
+            wall += f" ({kept} of {seeds} runs' metadata kept)"
+        out.append(f"| {label} | {seeds} | {steps} | {wall} | "
+                   f"{_ci(st['randomized'], 'iqm', 3)} | {_ci(st['stress'], 'iqm', 3)} | "
+                   f"{st['randomized']['failure_rate']:.2f} / {st['stress']['failure_rate']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
 def seeds_table() -> str:
     """Each residual seed's ``score_vs_law`` on the pooled RMSEs of each group, and whether it broke
     the certificate on the stress suite, from ``docs/protocol/results.json``."""
