@@ -218,7 +218,7 @@ def _knob_table() -> str:
 
     rows = [(f"``{k.name}``", k.unit or "-", rng(k.safe, k), rng(k.suite, k), k.meaning) for k in KNOBS]
     head = ("knob", "unit", "safe range", "training suite", "meaning")
-    line = lambda r: "| " + " | ".join(r) + " |"
+    line = lambda r: "| " + " | ".join(c.replace("|", "\\|") for c in r) + " |"  # a cell's own | is escaped
     return "\n".join([line(head), "|" + "---|" * len(head), *map(line, rows)])
 
 
