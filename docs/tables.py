@@ -841,10 +841,11 @@ MEASURED_BLOCKS = (
 
 
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
-    "README.md": {"headline": lambda: headline_table("docs/")},
+    "README.md": {"headline": lambda: headline_table("docs/"), "verdict": verdict_table},
     "docs/reproduction.md": {"reproduction": reproduction_table},
     "docs/results.md": {
         "headline": lambda: headline_table(here="results.md"),
+        "verdict": verdict_table,
         "protocol": protocol_table,
         "seed-statistics": lambda: statistics_table("", ("proposed", "ppo_residual", "bc", "lesobc"),
                                                     "seeds_report.json"),
@@ -864,7 +865,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
         "round2": tuning_round2_table,
         "observation-variants": observation_variants_table,
     },
-    "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table},
+    "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table,
+                       "scale-statistics": lambda: statistics_table("budget/protocol_scale", ("proposed", "sbx_ppo_256"))},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},
