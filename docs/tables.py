@@ -22,7 +22,7 @@ import importlib.util
 import re
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 DOCS = Path(__file__).resolve().parent
 ROOT = DOCS.parent
@@ -170,18 +170,25 @@ def statistics_table(folder: str, policies: tuple[str, ...], report: str = "repo
     stratified-bootstrap interval, the probability of improvement over the law), from the
     ``statistics`` of ``python -m agents.report``'s JSON in ``docs/<folder>``; a group the run did
     not score is left out."""
-    stats = _load(folder, report)["statistics"]
+    return statistics_rows_table([(policy, folder, report, policy) for policy in policies])
+
+
+def statistics_rows_table(rows: Sequence[tuple[str, str, str, str]]) -> str:
+    """:func:`statistics_table` for rows that may come from different runs: each row is (label,
+    folder under docs/, its report, the policy name there), in the table's order within a group."""
+    reports = {(folder, report): _load(folder, report)["statistics"] for _, folder, report, _ in rows}
     out = ["| policy | group | seeds x episodes | IQM score_vs_law [95 % CI] | P(improvement over the law) "
            "[95 % CI] | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|"]
     for g in _GROUPS:
-        for policy in policies:
+        for name, folder, report, policy in rows:
+            stats = reports[(folder, report)]
             st = next((x for x in stats if x["policy"] == policy and x["scenario"] == g), None)
             if st is None and any(x["scenario"] == g for x in stats):
                 raise ValueError(f"docs/{folder}/{report} has no statistics for {policy} on {g}")
             if st is None:  # a run without this group (e.g. no stress suite)
                 continue
             label = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
-            out.append(f"| {policy} | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
+            out.append(f"| {name} | {label} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
                        f"{_ci(st, 'prob_improvement', 2)} | {st['failure_rate']:.2f} | "
                        f"{st['certificate_broken']:.2f} |")
     return "\n".join(out) + "\n"
@@ -198,24 +205,6 @@ CERTIFIED_ROWS = (
 )
 """The certified-statistics table's rows: the law and the unfiltered residual's five seeds, and the
 certified residual's five seeds through the barrier filter without and with the hand-back."""
-
-
-def certified_statistics_table() -> str:
-    """rliable's statistics per group for :data:`CERTIFIED_ROWS`, each from its own run's
-    ``python -m agents.report`` JSON (as :func:`statistics_table`)."""
-    reports = {folder: _load(folder, report)["statistics"] for _, folder, report, _ in CERTIFIED_ROWS}
-    out = ["| policy | group | seeds x episodes | IQM score_vs_law [95 % CI] | P(improvement over the law) "
-           "[95 % CI] | failure rate | certificate_broken |", "|---|---|---|---|---|---|---|"]
-    for g in _GROUPS:
-        for label, folder, _, policy in CERTIFIED_ROWS:
-            st = next((x for x in reports[folder] if x["policy"] == policy and x["scenario"] == g), None)
-            if st is None:
-                raise ValueError(f"docs/{folder} has no statistics for {policy} on {g}")
-            group = GROUP_LABEL[g] if g.startswith("paper") else f"{GROUP_LABEL[g]} ({st['episodes']})"
-            out.append(f"| {label} | {group} | {len(st['seeds'])} x {st['episodes']} | {_ci(st, 'iqm', 3)} | "
-                       f"{_ci(st, 'prob_improvement', 2)} | {st['failure_rate']:.2f} | "
-                       f"{st['certificate_broken']:.2f} |")
-    return "\n".join(out) + "\n"
 
 
 VERDICT_ROWS = (
@@ -850,7 +839,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
         "seed-statistics": lambda: statistics_table("", ("proposed", "ppo_residual", "bc", "lesobc"),
                                                     "seeds_report.json"),
         "seeds": seeds_table,
-        "certified-statistics": certified_statistics_table,
+        "certified-statistics": lambda: statistics_rows_table(CERTIFIED_ROWS),
         "learners": learners_table,
     },
     "docs/environment.md": {
