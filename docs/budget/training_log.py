@@ -7,9 +7,9 @@ learning curve scored at the benchmark's own bounds.
 
 ``export`` reads the run's TensorBoard events (SB3's logger, ``lagrangian/*``, ``rollout/*`` and
 ``curriculum/bound_scale``) and keeps those scalars as JSON, small enough for ``docs/``; ``plot``
-draws from that file and the run's ``curve.json``. The shipped figure,
-``docs/budget/ppo_lagrangian_cur_s0_training.png``, was drawn from
-``docs/budget/runs/ppo_lagrangian_cur_s0/{training_log.json,curve.json}``.
+draws from that file and the run's ``curve.json``. Each shipped figure,
+``docs/budget/<run>_training.png``, was drawn from
+``docs/budget/runs/<run>/{training_log.json,curve.json}``.
 """
 
 from __future__ import annotations
