@@ -206,6 +206,31 @@ def _make_curriculum_callback(cur: dict[str, Any]):
     return _Curriculum()
 
 
+def _configured(cls, tc: TrainConfig, key: str) -> Any:
+    """A hyperparameter as the run was configured: the config's value, else ``cls``'s default."""
+    if key in tc.hyperparams:
+        return tc.hyperparams[key]
+    return inspect.signature(cls.__init__).parameters[key].default
+
+
+def _make_refill_callback(model, until: int, gradient_steps: int):
+    """After an off-policy run resumed without its replay buffer: the policy acts with no gradient
+    steps (``model.gradient_steps`` is 0) until step ``until``, so that updates start again on a
+    buffer of the run's own ``learning_starts`` transitions rather than on the first few. SB3's
+    ``learning_starts`` cannot be reused for this: below it the actions are uniformly random."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _Refill(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.num_timesteps >= until and self.model.gradient_steps != gradient_steps:
+                self.model.gradient_steps = gradient_steps
+                self.logger.record("refill/ended_at", self.num_timesteps)
+            return True
+
+    model.gradient_steps = 0
+    return _Refill()
+
+
 def _read_metadata(path: Path) -> dict[str, Any]:
     from .loading import read_json_object
 
@@ -283,13 +308,13 @@ def _env_kwargs(run: RunSpec, tc: TrainConfig) -> dict[str, Any]:
 
 def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
     """The newest complete checkpoint that loads, as (model, its steps, the wall time that produced
-    it), or (None, 0, 0.0); incomplete or unreadable sets are named and skipped, and unfinished
-    partial sets removed."""
+    it, whether an off-policy model got its replay buffer back), or (None, 0, 0.0, False);
+    incomplete or unreadable sets are named and skipped, and unfinished partial sets removed."""
     from stable_baselines3.common.vec_env import VecNormalize
 
     from .checkpoints import find_checkpoints
 
-    model, start_steps, prior_model_wall = None, 0, 0.0
+    model, start_steps, prior_model_wall, with_buffer = None, 0, 0.0, False
     found, skipped = find_checkpoints(ckpt_dir, normalize)
     for s in skipped:
         print(f"blf-train: skipping incomplete checkpoint {s}", file=sys.stderr)
@@ -297,7 +322,8 @@ def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
         try:
             env = VecNormalize.load(str(ck.stats), venv) if ck.stats is not None else venv
             model = cls.load(ck.model, env=env, device="cpu")
-            if ck.buffer is not None and hasattr(model, "replay_buffer"):
+            with_buffer = ck.buffer is not None and hasattr(model, "replay_buffer")
+            if with_buffer:
                 model.load_replay_buffer(ck.buffer)
         except Exception as exc:  # a damaged file SB3 or pickle cannot read: try an older set
             print(f"blf-train: skipping checkpoint at {ck.steps} steps ({ck.model.parent}): "
@@ -312,7 +338,7 @@ def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
         import shutil
 
         shutil.rmtree(partial, ignore_errors=True)
-    return model, start_steps, prior_model_wall
+    return model, start_steps, prior_model_wall, with_buffer
 
 
 def _new_model(cls, run: RunSpec, tc: TrainConfig, cfg_file: str, venv, out: Path):
@@ -448,9 +474,9 @@ def train(
         start_env["bound_scale"] = curriculum_scale(tc.curriculum, int((prior or {}).get("timesteps", 0))
                                                     if resume else 0)
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs, **start_env}))
-    model, start_steps, prior_model_wall = None, 0, 0.0
+    model, start_steps, prior_model_wall, with_buffer = None, 0, 0.0, False
     if resume:
-        model, start_steps, prior_model_wall = _restore(cls, venv, ckpt_dir, normalize, out)
+        model, start_steps, prior_model_wall, with_buffer = _restore(cls, venv, ckpt_dir, normalize, out)
         if model is None:
             if prior is None:
                 raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
@@ -508,6 +534,17 @@ def train(
         meta["completed"] = status == "completed"
         atomic_write_json(meta_path, meta)
 
+    refill, gradient_steps = None, None
+    if continuing and hasattr(model, "replay_buffer"):
+        # from the config, not the checkpoint: a checkpoint written during a refill holds 0
+        gradient_steps = int(_configured(cls, tc, "gradient_steps"))
+        model.gradient_steps = gradient_steps
+        if not with_buffer:  # e.g. a checkpoint kept without it (docs/budget/keep.sh)
+            until = start_steps + max(int(_configured(cls, tc, "learning_starts")), int(model.batch_size))
+            print(f"blf-train: {out}'s checkpoint has no replay buffer; the policy refills it without "
+                  f"updates until step {until}", file=sys.stderr)
+            segment["replay_buffer"] = {"resumed": False, "refilled_until": until}
+            refill = _make_refill_callback(model, until, gradient_steps)
     record()
     freq = max(1, tc.checkpoint_freq // n_envs)
     callbacks = [
@@ -521,6 +558,8 @@ def train(
     ]
     if tc.curriculum:
         callbacks.append(_make_curriculum_callback(tc.curriculum))
+    if refill is not None:
+        callbacks.append(refill)
     remaining = max(0, timesteps - start_steps)
     interrupted = False
     try:
@@ -536,6 +575,8 @@ def train(
     # a SIGTERM now (a scheduler's at the budget, a second one, a dying parent's) must not cut the
     # final save short: it is ignored until the run is recorded
     previous = signal.signal(signal.SIGTERM, signal.SIG_IGN) if main_thread else None
+    if gradient_steps is not None:  # a refill cut short must not be saved as the run's setting
+        model.gradient_steps = gradient_steps
     try:
         _save_final(model, ckpt_dir, out, clock)
         record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")

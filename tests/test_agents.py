@@ -681,3 +681,36 @@ def test_the_multi_job_recipe_starts_resumes_and_then_leaves_a_run_alone(tmp_pat
     assert [p.name for p in (kept / "checkpoints").iterdir()] == ["step_128"]
     model, meta, _ = load_agent(kept)
     assert model.num_timesteps == 128 and meta["timesteps"] == 128
+
+
+def test_an_off_policy_run_kept_without_its_replay_buffer_refills_it_before_updating(tmp_path):
+    """keep.sh does not keep a replay buffer (too large to commit). The kept set is still complete,
+    and the resumed run lets its policy act without gradient steps until the buffer again holds the
+    run's learning_starts transitions (at least a batch), then updates at its configured rate."""
+    import shutil
+    import subprocess
+
+    from stable_baselines3 import SAC
+
+    keep = Path(__file__).resolve().parents[1] / "docs" / "budget" / "keep.sh"
+    out, kept, cfg = tmp_path / "run", tmp_path / "kept", str(_tiny(tmp_path, "sac"))
+    assert train_main(["--algo", "sac", "--timesteps", "200", "--config", cfg, "--out", str(out),
+                       "--no-progress"]) == 0
+    assert (out / "checkpoints" / "step_200" / "replay_buffer.pkl").is_file()
+    subprocess.run(["bash", str(keep), str(out), str(kept)], check=True, capture_output=True, timeout=60)
+    ck = kept / "checkpoints" / "step_200"
+    assert not (ck / "replay_buffer.pkl").exists()
+    assert "replay_buffer.pkl" not in json.loads((ck / "state.json").read_text())["files"]
+    shutil.rmtree(out)
+    subprocess.run(["bash", str(keep), "--restore", str(kept), str(out)], check=True, capture_output=True, timeout=60)
+    assert train_main(["--resume", "--timesteps", "400", "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    # learning_starts is 0 in the tiny config, so the refill is one batch (32) of transitions
+    assert meta["segments"][-1]["replay_buffer"] == {"resumed": False, "refilled_until": 232}
+    before = SAC.load(ck / "model.zip", device="cpu")
+    after = SAC.load(out / "model.zip", device="cpu")
+    # 2 envs, train_freq 1, one gradient step per vector step: steps 202..400 are 100 vector steps,
+    # of which those at 232, 234, ..., 400 (85) update; all 100 would if the buffer had not been
+    # refilled, none if the refill had left gradient_steps at 0
+    assert after._n_updates - before._n_updates == 85
+    assert after.gradient_steps == 1 and after.replay_buffer is not None

@@ -12,6 +12,11 @@
 # commit holds one checkpoint per run. A finished run's model (model.zip, and vecnormalize.pkl when
 # it has one) is kept too, so that `blf-eval --agents KEPT` scores it as it is. Restoring copies
 # the metadata, curve and checkpoint back into RUN's layout.
+#
+# An off-policy checkpoint's replay buffer (replay_buffer.pkl, about 270 MB at 1M samples) is not
+# kept: it is too large to commit. The kept state.json no longer lists it, so the set is complete
+# without it, and blf-train, resuming from it, lets the policy refill the buffer before updating
+# again (recorded in the segment's "replay_buffer").
 set -euo pipefail
 newest() {  # the newest step_<N> folder under $1/checkpoints, or nothing
     local best="" n d
@@ -48,7 +53,20 @@ ck=$(newest "$run")
 [ -n "$ck" ] || { echo "$run: no complete checkpoint yet (checkpoints/step_<N>)" >&2; exit 1; }
 mkdir -p "$kept/checkpoints"
 tmp=$(mktemp -d "$kept/checkpoints/.keep.XXXXXX")
-cp -r "$ck" "$tmp/"
+mkdir "$tmp/${ck##*/}"
+for f in "$ck"/*; do [ "${f##*/}" = replay_buffer.pkl ] || cp -r "$f" "$tmp/${ck##*/}/"; done
+if [ -f "$ck/replay_buffer.pkl" ]; then
+    python3 - "$tmp/${ck##*/}/state.json" <<'PY'
+import json, sys
+path = sys.argv[1]
+with open(path) as f:
+    state = json.load(f)
+state["files"] = [f for f in state["files"] if f != "replay_buffer.pkl"]
+state["replay_buffer"] = "not kept (docs/budget/keep.sh); a resume refills it"
+with open(path, "w") as f:
+    f.write(json.dumps(state, indent=2) + "\n")
+PY
+fi
 cp "$run/metadata.json" "$tmp/metadata.json"
 [ ! -f "$run/eval/curve.json" ] || cp "$run/eval/curve.json" "$tmp/curve.json"
 for f in model.zip vecnormalize.pkl; do [ ! -f "$run/$f" ] || cp "$run/$f" "$tmp/$f"; done
