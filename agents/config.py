@@ -65,6 +65,10 @@ class TrainConfig:
     the first episodes with bounds S times as wide (1 < S <= ``blf_gym.envcore.MAX_BOUND_SCALE``) and shrinks them geometrically to
     the benchmark's own by agent step T (>= 1), and at 1 from then on; empty (the default): none.
     Learning curves and blf-eval always score at the benchmark's bounds."""
+    init_from: str = field(default="", metadata={"kind": "str"})
+    """A warm start: the run folder (or model zip) of a trained agent of the same mode whose policy
+    (every weight, ``log_std`` included) and observation statistics a new run starts from; empty
+    (the default): none. Other state (optimizer, reward statistics, a cost critic) starts fresh."""
     eval_freq: int = field(default=20_000, metadata={"kind": "count"})
     """Agent steps between two learning-curve points (>= 1)."""
     curve_suite_seeds: int = field(default=4, metadata={"kind": "count"})

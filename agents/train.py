@@ -376,6 +376,40 @@ def _new_model(cls, run: RunSpec, tc: TrainConfig, cfg_file: str, venv, out: Pat
         raise ValueError(f"{_where(cfg_file)}: a hyperparameter is not accepted by {run.algo.upper()}: {exc}") from exc
 
 
+def _warm_start(model, run: RunSpec, path: str, where: str) -> dict[str, Any]:
+    """Copy the policy and the observation statistics of the agent at ``path`` (config key
+    ``init_from``) into the new ``model``; what was copied, for the metadata. ValueError naming
+    ``init_from`` when the agent cannot be loaded or does not fit the run."""
+    import copy
+
+    from .loading import load_agent
+
+    try:
+        src, meta, norm = load_agent(path)
+    except ValueError as exc:
+        raise ValueError(f"{where}: init_from: {exc}") from None
+    if meta["mode"] != run.mode:
+        raise ValueError(f"{where}: init_from: {path} is a {meta['mode']} agent; this run is {run.mode}")
+    if src.observation_space != model.observation_space or src.action_space != model.action_space:
+        raise ValueError(f"{where}: init_from: {path}'s spaces ({src.observation_space}, {src.action_space}) "
+                         f"differ from this run's ({model.observation_space}, {model.action_space})")
+    try:
+        model.policy.load_state_dict(src.policy.state_dict())
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        raise ValueError(f"{where}: init_from: {path}'s policy ({type(src.policy).__name__}) does not fit this "
+                         f"run's ({type(model.policy).__name__}, policy_kwargs): {' '.join(first[:2])}") from None
+    target = model.get_vec_normalize_env()
+    if (norm is None) != (target is None):
+        raise ValueError(f"{where}: init_from: {path} was trained with normalize: {norm is not None}; "
+                         f"this run has normalize: {target is not None}, so its observations would be scaled "
+                         "differently")
+    if norm is not None:
+        target.obs_rms = copy.deepcopy(norm.obs_rms)
+    return {"path": str(path), "name": meta.get("name"), "algo": meta.get("algo"),
+            "timesteps": meta.get("timesteps"), "git_commit": meta.get("git_commit")}
+
+
 def _segments(prior: dict[str, Any] | None, resume: bool, start_steps: int, command: str | None
               ) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """The run's segments so far (one per process that trained it; a segment left "running" by a
@@ -488,8 +522,11 @@ def train(
                   f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
             venv.close()
             return out
+    warm = (prior or {}).get("init_from") if resume else None
     if model is None:
         model = _new_model(cls, run, tc, cfg_file, venv, out)
+        if tc.init_from:
+            warm = _warm_start(model, run, tc.init_from, _where(cfg_file))
     continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
     clock = _RunClock(prior_model_wall)
@@ -522,6 +559,8 @@ def train(
         "command": (prior or {}).get("command") if resume else command,
         "host": {"cpus": os.cpu_count()},
     }
+    if warm:
+        meta["init_from"] = warm
 
     def record(status: str = "running") -> None:
         segment["end_timesteps"] = int(model.num_timesteps)

@@ -714,3 +714,42 @@ def test_an_off_policy_run_kept_without_its_replay_buffer_refills_it_before_upda
     # refilled, none if the refill had left gradient_steps at 0
     assert after._n_updates - before._n_updates == 85
     assert after.gradient_steps == 1 and after.replay_buffer is not None
+
+
+def test_init_from_starts_a_new_run_from_a_trained_agents_policy_and_statistics(tmp_path):
+    """config key init_from: the new run's untrained model acts as the source agent does (same
+    weights, log_std and observation statistics), whatever its own policy_kwargs' log_std_init; a
+    source that does not fit the run is refused, naming init_from."""
+    from agents.lagrangian import PPOLagrangian  # noqa: F401  (registered as ppo_lagrangian)
+
+    src = tmp_path / "src"
+    assert train_main(["--algo", "ppo", "--mode", "plain", "--timesteps", "64", "--config", str(_tiny(tmp_path, "ppo")),
+                       "--out", str(src), "--no-progress"]) == 0
+    model_src, _, norm_src = load_agent(src)
+    out = tmp_path / "warm"
+    # 0 steps after the start: the saved model is the warm-started one, untouched by an update
+    cfg = _tiny(tmp_path, "ppo")
+    assert train_main(["--algo", "ppo_lagrangian", "--mode", "plain", "--timesteps", "1", "--config", str(cfg),
+                       "--set", f"init_from={src}", "--set", "policy_kwargs.log_std_init=-3.0",
+                       "--set", "hyperparams.n_steps=1", "--set", "hyperparams.batch_size=2",
+                       "--set", "hyperparams.learning_rate=0.0",
+                       "--out", str(out), "--no-progress"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["init_from"]["path"] == str(src) and meta["init_from"]["timesteps"] == 64
+    model, _, norm = load_agent(out)
+    # learning rate 0: the one update changes no weight, so the policies must be equal
+    for k, v in model_src.policy.state_dict().items():
+        np.testing.assert_array_equal(model.policy.state_dict()[k].numpy(), v.numpy(), err_msg=k)
+    assert float(model.policy.log_std.detach()[0]) != -3.0
+    # the statistics start as the source's, then count the run's own few observations (resets and
+    # one step of 2 arms); fresh statistics would count only those few
+    assert norm_src.obs_rms.count < norm.obs_rms.count < norm_src.obs_rms.count + 10
+    # a plain agent cannot start a residual run, nor a policy of another shape this one
+    from agents.train import train
+
+    with pytest.raises(ValueError, match="init_from: .* is a plain agent; this run is residual"):
+        train(algo="ppo_lagrangian", mode="residual", timesteps=1, config=str(cfg), overrides=[f"init_from={src}"],
+              out=tmp_path / "bad", progress=False)
+    with pytest.raises(ValueError, match="init_from: .*policy .* does not fit"):
+        train(algo="ppo_lagrangian", mode="plain", timesteps=1, config=str(cfg), out=tmp_path / "bad2",
+              overrides=[f"init_from={src}", "policy_kwargs.net_arch=[32, 32]"], progress=False)
