@@ -167,8 +167,8 @@ def test_a_config_s_env_keys_are_the_env_s_own_arguments():
     params = set(inspect.signature(EnvCore.__init__).parameters) - {"self"}
     assert set(env_keys()) == params - set(RUN_SET_ENV_KEYS) and set(RUN_SET_ENV_KEYS) <= params
     assert {"control_period", "residual_filter", "reward_weights", "dt"} <= set(env_keys())
-    # every shipped config passes, and its defaults are TrainConfig's
-    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+    # every shipped config (the budget runs' too) passes, and its defaults are TrainConfig's
+    for path in sorted([*CONFIG_DIR.glob("*.yaml"), *(CONFIG_DIR / "budget").glob("*.yaml")]):
         load_config(path)
     assert TrainConfig().n_envs == 1 and TrainConfig().eval_freq == 20_000
 
