@@ -496,7 +496,10 @@ def train(
     from .loading import algorithm_class
     from .vec_env import BLFVecEnv
 
-    torch.set_num_threads(1)
+    # one thread for the learner unless OMP_NUM_THREADS asks for more: the env has its own, and two
+    # runs at once share the two cores (docs/budget.md measures both)
+    omp = os.environ.get("OMP_NUM_THREADS", "")
+    torch.set_num_threads(int(omp) if omp.isdigit() and int(omp) >= 1 else 1)
     cls = algorithm_class(run.algo)
     n_envs = tc.n_envs
     start_env: dict[str, Any] = {}

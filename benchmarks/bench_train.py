@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import tempfile
 import time
 from collections import defaultdict
@@ -71,6 +72,8 @@ def main() -> None:
     from stable_baselines3.common.policies import ActorCriticPolicy, BasePolicy
     from stable_baselines3.common.vec_env import VecNormalize
 
+    import torch
+
     import blf_gym.metrics
     from agents.loading import algorithm_class
     from agents.train import train
@@ -106,6 +109,8 @@ def main() -> None:
     if args.json:
         args.json.write_text(json.dumps({"algo": args.algo, "mode": args.mode, "steps": steps, "wall_s": wall,
                                          "overrides": args.overrides, "seconds": rows,
+                                         "threads": {"torch": torch.get_num_threads(),
+                                                     "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")},
                                          "config": meta.get("config")}, indent=1))
 
 
