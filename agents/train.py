@@ -308,13 +308,14 @@ def _env_kwargs(run: RunSpec, tc: TrainConfig) -> dict[str, Any]:
 
 def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
     """The newest complete checkpoint that loads, as (model, its steps, the wall time that produced
-    it, whether an off-policy model got its replay buffer back), or (None, 0, 0.0, False);
-    incomplete or unreadable sets are named and skipped, and unfinished partial sets removed."""
+    it, whether an off-policy model got its replay buffer back, the set's state), or (None, 0, 0.0,
+    False, {}); incomplete or unreadable sets are named and skipped, and unfinished partial sets
+    removed."""
     from stable_baselines3.common.vec_env import VecNormalize
 
     from .checkpoints import find_checkpoints
 
-    model, start_steps, prior_model_wall, with_buffer = None, 0, 0.0, False
+    model, start_steps, prior_model_wall, with_buffer, state = None, 0, 0.0, False, {}
     found, skipped = find_checkpoints(ckpt_dir, normalize)
     for s in skipped:
         print(f"blf-train: skipping incomplete checkpoint {s}", file=sys.stderr)
@@ -332,13 +333,14 @@ def _restore(cls, venv, ckpt_dir: Path, normalize: bool, out: Path):
             continue
         start_steps = ck.steps
         prior_model_wall = float(ck.state.get("wall_s_to_model", 0.0))
+        state = dict(ck.state)
         print(f"blf-train: resuming {out} from its checkpoint at {start_steps} steps", file=sys.stderr)
         break
     for partial in ckpt_dir.glob(".partial_*") if ckpt_dir.is_dir() else []:
         import shutil
 
         shutil.rmtree(partial, ignore_errors=True)
-    return model, start_steps, prior_model_wall, with_buffer
+    return model, start_steps, prior_model_wall, with_buffer, state
 
 
 def _new_model(cls, run: RunSpec, tc: TrainConfig, cfg_file: str, venv, out: Path):
@@ -393,6 +395,14 @@ def _warm_start(model, run: RunSpec, path: str, where: str) -> dict[str, Any]:
     if src.observation_space != model.observation_space or src.action_space != model.action_space:
         raise ValueError(f"{where}: init_from: {path}'s spaces ({src.observation_space}, {src.action_space}) "
                          f"differ from this run's ({model.observation_space}, {model.action_space})")
+    if not hasattr(src.policy, "state_dict") or type(src.policy) is not type(model.policy):
+        raise ValueError(f"{where}: init_from: {path}'s policy is a {type(src.policy).__module__}."
+                         f"{type(src.policy).__name__}; this run's is a {type(model.policy).__module__}."
+                         f"{type(model.policy).__name__}")
+    for attr in ("activation_fn", "squash_output"):  # same shapes, other functions: not caught below
+        if getattr(src.policy, attr, None) != getattr(model.policy, attr, None):
+            raise ValueError(f"{where}: init_from: {path}'s policy has {attr} {getattr(src.policy, attr, None)}; "
+                             f"this run's has {getattr(model.policy, attr, None)}")
     try:
         model.policy.load_state_dict(src.policy.state_dict())
     except RuntimeError as exc:
@@ -406,6 +416,9 @@ def _warm_start(model, run: RunSpec, path: str, where: str) -> dict[str, Any]:
                          "differently")
     if norm is not None:
         target.obs_rms = copy.deepcopy(norm.obs_rms)
+        if bool(norm.norm_reward) != bool(target.norm_reward):
+            print(f"blf-train: init_from: {path} was trained with normalize_reward {bool(norm.norm_reward)}, this run "
+                  f"has {bool(target.norm_reward)}: its value head starts on another scale", file=sys.stderr)
     return {"path": str(path), "name": meta.get("name"), "algo": meta.get("algo"),
             "timesteps": meta.get("timesteps"), "git_commit": meta.get("git_commit")}
 
@@ -428,14 +441,15 @@ def _segments(prior: dict[str, Any] | None, resume: bool, start_steps: int, comm
     return segments, segment
 
 
-def _save_final(model, ckpt_dir: Path, out: Path, clock: _RunClock) -> None:
-    """The run's last checkpoint, then ``model.zip`` and ``vecnormalize.pkl``, each written atomically."""
+def _save_final(model, ckpt_dir: Path, out: Path, state: dict[str, Any]) -> None:
+    """The run's last checkpoint (``state`` stored with it), then ``model.zip`` and
+    ``vecnormalize.pkl``, each written atomically."""
     from blf_gym.io import atomic_path
 
     from .checkpoints import save_checkpoint
 
     # every run ends on a checkpoint, so it can be resumed or extended from where it stopped
-    save_checkpoint(model, ckpt_dir, {"wall_s_to_model": round(clock.model(), 3)})
+    save_checkpoint(model, ckpt_dir, state)
     norm = model.get_vec_normalize_env()
     if norm is not None:
         with atomic_path(out / "vecnormalize.pkl") as tmp:
@@ -511,9 +525,9 @@ def train(
         start_env["bound_scale"] = curriculum_scale(tc.curriculum, int((prior or {}).get("timesteps", 0))
                                                     if resume else 0)
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs, **start_env}))
-    model, start_steps, prior_model_wall, with_buffer = None, 0, 0.0, False
+    model, start_steps, prior_model_wall, with_buffer, ck_state = None, 0, 0.0, False, {}
     if resume:
-        model, start_steps, prior_model_wall, with_buffer = _restore(cls, venv, ckpt_dir, normalize, out)
+        model, start_steps, prior_model_wall, with_buffer, ck_state = _restore(cls, venv, ckpt_dir, normalize, out)
         if model is None:
             if prior is None:
                 raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
@@ -576,21 +590,30 @@ def train(
         meta["completed"] = status == "completed"
         atomic_write_json(meta_path, meta)
 
-    refill, gradient_steps = None, None
+    refill, gradient_steps, until = None, None, 0
     if continuing and hasattr(model, "replay_buffer"):
         # from the config, not the checkpoint: a checkpoint written during a refill holds 0
         gradient_steps = int(_configured(cls, tc, "gradient_steps"))
         model.gradient_steps = gradient_steps
         if not with_buffer:  # e.g. a checkpoint kept without it (docs/budget/keep.sh)
             until = start_steps + max(int(_configured(cls, tc, "learning_starts")), int(model.batch_size))
-            print(f"blf-train: {out}'s checkpoint has no replay buffer; the policy refills it without "
-                  f"updates until step {until}", file=sys.stderr)
-            segment["replay_buffer"] = {"resumed": False, "refilled_until": until}
+        # a checkpoint written during a refill holds a part-filled buffer: the refill goes on
+        until = max(until, int(ck_state.get("refill_until", 0)))
+        if until > start_steps:
+            print(f"blf-train: {out}'s checkpoint has {'a part-refilled' if with_buffer else 'no'} replay buffer; "
+                  f"the policy fills it without updates until step {until}", file=sys.stderr)
+            segment["replay_buffer"] = {"resumed": with_buffer, "refilled_until": until}
             refill = _make_refill_callback(model, until, gradient_steps)
+
+    def ck_state() -> dict[str, Any]:
+        """What a checkpoint stores beside its files: the training wall time so far, and the step
+        an unfinished refill runs to."""
+        extra = {"refill_until": until} if refill is not None and model.num_timesteps < until else {}
+        return {"wall_s_to_model": round(clock.model(), 3), **extra}
     record()
     freq = max(1, tc.checkpoint_freq // n_envs)
     callbacks = [
-        AtomicCheckpointCallback(freq, str(ckpt_dir), state=lambda: {"wall_s_to_model": round(clock.model(), 3)},
+        AtomicCheckpointCallback(freq, str(ckpt_dir), state=ck_state,
                                  on_saved=lambda _folder: record(), name_prefix="model",
                                  save_replay_buffer=True, save_vecnormalize=normalize),
         _make_curve_callback(tc.eval_freq, out, env_kwargs,
@@ -620,7 +643,7 @@ def train(
     if gradient_steps is not None:  # a refill cut short must not be saved as the run's setting
         model.gradient_steps = gradient_steps
     try:
-        _save_final(model, ckpt_dir, out, clock)
+        _save_final(model, ckpt_dir, out, ck_state())
         record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
     finally:
         if main_thread:
