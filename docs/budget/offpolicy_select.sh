@@ -16,6 +16,7 @@ for a in sac crossq; do
     runs+=("$run")
 done
 blf-eval --controllers proposed --agents "${runs[@]}" --suite randomized --jobs 1 --out "$out" --no-plots --no-progress
+python -m agents.report "$out/results.json" --out "$out/seeds_table.md"
 python - "$out/report.json" <<'PY'
 import json
 import sys
