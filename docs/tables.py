@@ -236,6 +236,32 @@ def _budget(globs: tuple[str, ...]) -> tuple[int, str, str]:
             span(walls[0], walls[-1], lambda v: f"{v / 3600:.1f} h" if v >= 3600 else f"{v / 60:.0f} min"))
 
 
+RESIDUAL_RATE_PATHS = (("1. SB3, one thread", "residual_ppo_1t"), ("2. SB3, two threads", "residual_ppo_2t"),
+                       ("3. sbx, one thread", "residual_sbx_1t"), ("4. sbx, all threads", "residual_sbx_2t"))
+"""The shipped residual configuration's four measured paths (docs/budget.md, section 1): label, the
+``benchmarks/bench_train.py --json`` file in docs/budget/rates/."""
+ISSUE_RESIDUAL_RATE = 885
+"""Agent steps/s of the shipped residual configuration as issue 25 states it (measured with a second
+training on the two cores), the base of its five-fold goal."""
+
+
+def residual_rates_table() -> str:
+    """The residual configuration's agent steps/s on each path of :data:`RESIDUAL_RATE_PATHS`, end
+    to end and without the learning-curve evaluations, against path 1 and the issue's figure."""
+    import json
+
+    runs = [(label, json.loads((DOCS / "budget" / "rates" / f"{name}.json").read_text()))
+            for label, name in RESIDUAL_RATE_PATHS]
+    base = runs[0][1]["steps"] / runs[0][1]["wall_s"]
+    out = ["| path | agent steps/s end to end | without curve evaluations | against path 1 | "
+           f"against the issue's {ISSUE_RESIDUAL_RATE} |", "|---|---|---|---|---|"]
+    for label, r in runs:
+        rate = r["steps"] / r["wall_s"]
+        out.append(f"| {label} | {rate:,.0f} | {r['steps'] / (r['wall_s'] - r['seconds']['curves']):,.0f} | "
+                   f"{rate / base:.2f} | {rate / ISSUE_RESIDUAL_RATE:.1f} |")
+    return "\n".join(out) + "\n"
+
+
 def verdict_table() -> str:
     """Each learner of :data:`VERDICT_ROWS`: seeds, agent steps and wall clock per run (from the runs'
     kept metadata), and rliable's IQM ``score_vs_law`` over seeds x episodes with its 95 % interval
@@ -856,6 +882,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     },
     "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table,
                        "scale-statistics": lambda: statistics_table("budget/protocol_scale", ("proposed", "sbx_ppo_256")),
+                       "residual-rates": residual_rates_table,
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
