@@ -541,9 +541,13 @@ def train(
             return out
     warm = (prior or {}).get("init_from") if resume else None
     if model is None:
-        model = _new_model(cls, run, tc, cfg_file, venv, out)
-        if tc.init_from:
-            warm = _warm_start(model, run, tc.init_from, _where(cfg_file))
+        try:
+            model = _new_model(cls, run, tc, cfg_file, venv, out)
+            if tc.init_from:
+                warm = _warm_start(model, run, tc.init_from, _where(cfg_file))
+        except BaseException:
+            venv.close()  # its worker threads would outlive a refused run in a long-lived process
+            raise
     continuing = start_steps > 0
     out.mkdir(parents=True, exist_ok=True)
     clock = _RunClock(prior_model_wall)
