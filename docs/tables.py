@@ -524,11 +524,16 @@ LAGRANGIAN_RUNS = (("lagrangian_s0_presets", "ppo_lagrangian_s0", "none"),
                   ("lagrangian_sched_s0_presets", "ppo_lagrangian_sched_s0",
                    "none; termination_cost 3000; limit 3000 to 25 over 2M steps"),
                   ("lagrangian_shaped_s0_presets", "ppo_lagrangian_shaped_s0",
-                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps; plain PPO's reward"))
+                   "none; termination_cost 3000; limit 3000 to 25 over 2M steps; plain PPO's reward"),
+                  ("lagrangian_warm_s0_presets", "ppo_lagrangian_warm_s0",
+                   "none; warm start from ppo_plain; termination_cost 3000; limit 2800 to 25 over 2M steps; "
+                   "plain PPO's reward, not normalised"),
+                  ("ppo_warm_s0_presets", "ppo_warm_s0", "none; plain PPO, warm start from ppo_plain"))
 """The seed-0 runs of budget.md section 4 (PPO-Lagrangian after its fix, without and with the funnel
-curriculum, plain PPO with the same curriculum, PPO-Lagrangian charged for terminated episodes, and
-with a cost-limit schedule as well): folder under docs/budget, agent, curriculum (and the other
-set-up changes)."""
+curriculum, plain PPO with the same curriculum, PPO-Lagrangian charged for terminated episodes, with
+a cost-limit schedule as well, with plain PPO's reward, and warm-started from plain PPO, beside plain
+PPO given the same warm start): folder under docs/budget, agent, curriculum (and the other set-up
+changes)."""
 
 
 def lagrangian_presets_table() -> str:
