@@ -61,7 +61,8 @@ HEADLINE = (
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
     ("plain PPO at 50M steps (sbx, seed 0 of 3)", "learning", "budget/protocol_s0", "sbx_ppo_256_s0", "budget.md"),
-    ("PPO-Lagrangian", "learning", "protocol_learners", "ppo_lagrangian", "lagrangian.md"),
+    ("PPO-Lagrangian, warm-started from plain PPO (seed 0)", "learning", "budget/protocol_warm",
+     "ppo_lagrangian_warm_s0", "lagrangian.md"),
 )
 """The headline comparison's rows: one per method, its shipped or best configuration."""
 
