@@ -614,6 +614,7 @@ def train(
         an unfinished refill runs to."""
         extra = {"refill_until": until} if refill is not None and model.num_timesteps < until else {}
         return {"wall_s_to_model": round(clock.model(), 3), **extra}
+
     record()
     freq = max(1, tc.checkpoint_freq // n_envs)
     callbacks = [
