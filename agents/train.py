@@ -6,6 +6,8 @@ Examples::
     blf-train --algo sac --mode residual --timesteps 200000 --out runs/sac_residual
     blf-train --algo ppo --mode plain --scenario randomized --seed 3 --out runs/ppo_plain
     blf-train --resume --out runs/ppo_residual          # continue an interrupted run
+    blf-train --algo sbx_sac --mode plain --timesteps 1000000000 --time-budget 3600 --out runs/sac
+                                                        # as many steps as one hour of wall clock allows
 
 Hyperparameters come from a YAML file per algorithm and env id (``agents/configs``, rl-zoo3
 style; ``--config`` picks another). Only ``ppo_PlanarBLFResidual-v0.yaml`` is tuned (see
@@ -229,6 +231,18 @@ def _make_refill_callback(model, until: int, gradient_steps: int):
 
     model.gradient_steps = 0
     return _Refill()
+
+
+def _make_time_budget_callback(clock: _RunClock, budget: float):
+    """Ends training at the first step at which the wall time that produced the model (over all
+    segments, ``clock.model()``) reaches ``budget`` seconds."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class _TimeBudget(BaseCallback):
+        def _on_step(self) -> bool:
+            return clock.model() < budget
+
+    return _TimeBudget()
 
 
 def _read_metadata(path: Path) -> dict[str, Any]:
@@ -473,8 +487,14 @@ def train(
     command: str | None = None,
     observer: str | None = None,
     overrides: Mapping[str, Any] | Sequence[str] = (),
+    time_budget_s: float | None = None,
 ) -> Path:
     """Train (or resume, or extend) one agent; returns the run folder. See the module docstring.
+
+    ``time_budget_s`` ends the run, as completed, once the wall time that produced its model (over
+    all its segments, curve evaluations included) reaches it, even short of ``timesteps``: "as many
+    steps as this wall clock allows". A resume keeps the run's budget unless given a new one, and a
+    larger one extends a run that its budget ended.
 
     ``overrides`` sets config keys over the file's: {dotted key: value}, or ``KEY=VALUE`` strings as
     ``--set`` takes them (``agents.config.SET_HELP``).
@@ -484,9 +504,13 @@ def train(
     the run's requested total, and a larger ``timesteps`` extends a finished run.
     """
     out = Path(out)
+    if time_budget_s is not None and not (np.isfinite(time_budget_s) and time_budget_s > 0):
+        raise ValueError(f"--time-budget must be a number of seconds > 0, got {time_budget_s!r}")
     meta_path = out / "metadata.json"
     ckpt_dir = out / "checkpoints"
     prior = _read_metadata(meta_path) if meta_path.is_file() else None
+    if time_budget_s is None and resume and prior is not None and prior.get("time_budget_s") is not None:
+        time_budget_s = float(prior["time_budget_s"])
     if not resume and prior is not None:
         raise ValueError(f"{out} already holds a run; pass --resume to continue it (or --resume --timesteps N "
                          "to extend it), or choose another --out")
@@ -533,12 +557,22 @@ def train(
                 raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
             print(f"blf-train: no complete checkpoint in {ckpt_dir}; starting {out} again from step 0",
                   file=sys.stderr)
-        elif start_steps >= timesteps and prior is not None and prior.get("completed") \
-                and (out / "model.zip").is_file():
-            print(f"blf-train: {out} already has {start_steps} steps (requested {timesteps}); nothing to do. "
-                  f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
-            venv.close()
-            return out
+        elif prior is not None and prior.get("completed") and (out / "model.zip").is_file():
+            if start_steps >= timesteps:
+                print(f"blf-train: {out} already has {start_steps} steps (requested {timesteps}); nothing to do. "
+                      f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
+                venv.close()
+                return out
+            # the final save leaves a checkpoint written at the same step just before it as it was, so
+            # the metadata's wall time, recorded last, is the one that ended the run
+            spent = float(prior.get("wall_s_to_model", 0.0)) if int(prior.get("timesteps", -1)) == start_steps \
+                else prior_model_wall
+            if time_budget_s is not None and spent >= time_budget_s:
+                print(f"blf-train: {out} has spent its time budget ({spent:.0f} s of {time_budget_s:g} s, "
+                      f"{start_steps} steps); nothing to do. Pass --resume --time-budget S with a larger S to "
+                      "extend it.", file=sys.stderr)
+                venv.close()
+                return out
     warm = (prior or {}).get("init_from") if resume else None
     if model is None:
         try:
@@ -569,6 +603,7 @@ def train(
         "seed": seed,
         "timesteps": start_steps,
         "timesteps_requested": timesteps,
+        "time_budget_s": time_budget_s,
         "status": "running",
         "completed": False,
         "resumed": len(segments) > 1,
@@ -630,6 +665,8 @@ def train(
         callbacks.append(_make_curriculum_callback(tc.curriculum))
     if refill is not None:
         callbacks.append(refill)
+    if time_budget_s is not None:
+        callbacks.append(_make_time_budget_callback(clock, time_budget_s))
     remaining = max(0, timesteps - start_steps)
     interrupted = False
     try:
@@ -649,7 +686,8 @@ def train(
         model.gradient_steps = gradient_steps
     try:
         _save_final(model, ckpt_dir, out, ck_state())
-        record("completed" if (not interrupted and model.num_timesteps >= timesteps) else "interrupted")
+        spent = time_budget_s is not None and clock.model() >= time_budget_s
+        record("completed" if (not interrupted and (model.num_timesteps >= timesteps or spent)) else "interrupted")
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
@@ -679,6 +717,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--timesteps", type=int, default=None, metavar="N",
                    help="total agent steps, one per control_period (default 100000; with --resume, the "
                         "run's requested total, and a larger N extends a finished run)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="S",
+                   help="end the run, as completed, once S seconds of wall clock (over all its segments) have "
+                        "trained it, even short of --timesteps (default: none; with --resume, the run's own)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="seed of the networks, the envs and the scenario draws (default 0)")
     p.add_argument("--config", default=None, metavar="YAML",
@@ -704,7 +745,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         out = train(algo=args.algo, mode=args.mode, controller=args.controller, scenario=args.scenario,
                     timesteps=args.timesteps, seed=args.seed, config=args.config, out=args.out, resume=args.resume,
                     progress=not args.no_progress, name=args.name, command=shlex.join(["blf-train", *argv]),
-                    observer=args.observer, overrides=args.overrides)
+                    observer=args.observer, overrides=args.overrides, time_budget_s=args.time_budget)
     except ValueError as exc:
         print(f"blf-train: error: {exc}", file=sys.stderr)
         return 2

@@ -762,3 +762,27 @@ def test_init_from_starts_a_new_run_from_a_trained_agents_policy_and_statistics(
     with pytest.raises(ValueError, match="init_from: .*policy .* does not fit"):
         train(algo="ppo_lagrangian", mode="plain", timesteps=1, config=str(cfg), out=tmp_path / "bad2",
               overrides=[f"init_from={src}", "policy_kwargs.net_arch=[32, 32]"], progress=False)
+
+
+def test_a_time_budget_ends_the_run_as_completed_and_a_larger_one_extends_it(tmp_path, capsys):
+    """--time-budget: training stops, as completed, at the first step at which the wall time that
+    produced the model reaches the budget, even short of --timesteps; a resume keeps the budget (and
+    trains nothing once it is spent); a larger one extends the run, counting the earlier segment."""
+    out, cfg = tmp_path / "run", str(_tiny(tmp_path, "ppo"))
+    base = ["--algo", "ppo", "--mode", "plain", "--config", cfg, "--out", str(out), "--no-progress"]
+    assert train_main([*base, "--timesteps", "10000000", "--time-budget", "1.5"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    # ten million steps cannot be trained in 1.5 s: the budget, not the step target, ended the run
+    assert meta["completed"] and meta["time_budget_s"] == 1.5 and 0 < meta["timesteps"] < 10_000_000
+    assert meta["wall_s_to_model"] >= 1.5
+    first = meta["timesteps"]
+    assert train_main(["--resume", "--out", str(out), "--no-progress"]) == 0
+    assert "spent its time budget" in capsys.readouterr().err
+    assert len(json.loads((out / "metadata.json").read_text())["segments"]) == 1
+    assert train_main(["--resume", "--out", str(out), "--no-progress", "--time-budget", "3"]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["completed"] and meta["time_budget_s"] == 3 and meta["timesteps"] > first
+    assert meta["wall_s_to_model"] >= 3 and [s["start_timesteps"] for s in meta["segments"]] == [0, first]
+    for bad in ("0", "-1", "nan", "inf"):
+        assert train_main([*base, "--timesteps", "64", "--time-budget", bad]) == 2
+        assert "--time-budget must be a number of seconds > 0" in capsys.readouterr().err

@@ -1,18 +1,21 @@
 #!/usr/bin/env bash
 # One stage of a long training run that may span several jobs (docs/budget.md).
 #
-#   docs/budget/run.sh OUT STEPS [blf-train options for a new run ...]
+#   docs/budget/run.sh OUT STEPS [blf-train options ...]
 #
 # Starts the run in OUT when OUT holds none; otherwise resumes it from its newest complete
 # checkpoint and trains it up to STEPS agent steps in total (a run already at STEPS is left as it
-# is). Repeat the same command in the next job until it reports the run complete. A job that is
-# killed loses at most the steps since its last checkpoint (the config's checkpoint_freq).
+# is). The options are passed on both times: on a resume they must agree with the run's own
+# (blf-train refuses a contradiction), and --time-budget S ends the run once S seconds of wall clock
+# over all its segments have trained it ("as many steps as S seconds allow", with a large STEPS).
+# Repeat the same command in the next job until it reports the run complete. A job that is killed
+# loses at most the steps since its last checkpoint (the config's checkpoint_freq).
 #
 # Each job should give the run whole cores: the env and the learner each use one thread here, set
 # by the variables below (two runs at once on two cores).
 set -euo pipefail
 if [ "$#" -lt 2 ]; then
-    echo "usage: $0 OUT STEPS [blf-train options for a new run]" >&2
+    echo "usage: $0 OUT STEPS [blf-train options]" >&2
     exit 2
 fi
 out=$1
@@ -33,7 +36,7 @@ if [ -n "$newest" ] && [ "$newest" -ge "$steps" ]; then
     exit 0
 fi
 if [ -f "$out/metadata.json" ] || [ -d "$out/checkpoints" ]; then
-    exec blf-train --resume --out "$out" --timesteps "$steps" --no-progress
+    exec blf-train --resume --out "$out" --timesteps "$steps" --no-progress "$@"
 else
     exec blf-train --out "$out" --timesteps "$steps" --no-progress "$@"
 fi
