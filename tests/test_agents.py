@@ -786,3 +786,45 @@ def test_a_time_budget_ends_the_run_as_completed_and_a_larger_one_extends_it(tmp
     for bad in ("0", "-1", "nan", "inf"):
         assert train_main([*base, "--timesteps", "64", "--time-budget", bad]) == 2
         assert "--time-budget must be a number of seconds > 0" in capsys.readouterr().err
+
+
+def test_the_budget_plans_run_the_commands_docs_budget_md_states(tmp_path):
+    """docs/budget/plan.sh's chains E and F (SAC's seeds, the warm-started runs' seeds) pass
+    run.sh the options that docs/budget.md fixed before the runs: the page's seed-0 commands with
+    the seed and name changed, the time budget added for SAC; a stub run.sh records the calls."""
+    import re
+    import shlex
+    import shutil
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    shutil.copy(root / "docs" / "budget" / "plan.sh", tmp_path / "plan.sh")
+    log = tmp_path / "calls"
+    (tmp_path / "run.sh").write_text(f'#!/usr/bin/env bash\nprintf "%s\\0" "$@" >> {log}\nprintf "\\n" >> {log}\n')
+    (tmp_path / "run.sh").chmod(0o755)
+
+    def calls(*args: str) -> list[list[str]]:
+        log.unlink(missing_ok=True)
+        subprocess.run(["bash", str(tmp_path / "plan.sh"), *args], check=True, capture_output=True, timeout=60)
+        return [c.rstrip("\0").split("\0") for c in log.read_text().split("\0\n") if c]
+
+    page = (root / "docs" / "budget.md").read_text()
+
+    def documented(name: str, seed: int) -> list[str]:
+        line = next(x for x in page.splitlines() if x.startswith(f"docs/budget/run.sh RUNS_DIR/{name}_s0 "))
+        words = shlex.split(line)[1:]
+        words = [w.replace(f"{name}_s0", f"{name}_s{seed}") for w in words]
+        i = words.index("--seed")
+        words[i + 1] = str(seed)
+        return [w.replace("RUNS_DIR", "R") for w in words]
+
+    got = calls("F", "R", "2")
+    assert got == [documented("ppo_lagrangian_warm", 2), documented("ppo_warm", 2)]
+    sac = calls("E", "R", "1")
+    assert len(sac) == 1 and sac[0][:2] == ["R/sbx_sac_s1", "1000000000"]
+    opts = dict(zip(sac[0][2::2], sac[0][3::2]))
+    # section 3: the seed-0 PPO run's 15,052 s, the amendment's config, seed and name
+    assert opts == {"--time-budget": "15052", "--algo": "sbx_sac", "--mode": "plain", "--scenario": "randomized",
+                    "--seed": "1", "--config": "agents/configs/budget/sbx_sac.yaml", "--name": "sbx_sac_s1"}
+    assert re.search(r"15,052 s", page)
+    assert [c[0] for c in calls("E", "R")] == ["R/sbx_sac_s0", "R/sbx_sac_s1", "R/sbx_sac_s2"]
