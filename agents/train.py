@@ -116,10 +116,10 @@ class _RunClock:
 
     def __init__(self, prior: float = 0.0) -> None:
         self.prior = float(prior)
-        self.t0 = time.time()
+        self.t0 = time.monotonic()
 
     def segment(self) -> float:
-        return time.time() - self.t0
+        return time.monotonic() - self.t0
 
     def model(self) -> float:
         return self.prior + self.segment()
@@ -509,8 +509,16 @@ def train(
     meta_path = out / "metadata.json"
     ckpt_dir = out / "checkpoints"
     prior = _read_metadata(meta_path) if meta_path.is_file() else None
-    if time_budget_s is None and resume and prior is not None and prior.get("time_budget_s") is not None:
-        time_budget_s = float(prior["time_budget_s"])
+    if resume and prior is not None:
+        recorded = prior.get("time_budget_s")
+        if recorded is not None and time_budget_s is not None and time_budget_s < float(recorded):
+            raise ValueError(f"--time-budget {time_budget_s:g} is below the run's budget of {float(recorded):g} s "
+                             f"({meta_path}); a resume keeps a run's budget or extends it")
+        if time_budget_s is None and recorded is not None:
+            time_budget_s = float(recorded)
+        if name is not None and prior.get("name") and name != prior["name"]:
+            raise ValueError(f"--name {name} differs from the run's name {prior['name']!r} ({meta_path}); "
+                             "--resume keeps a run's name, so drop --name or choose another --out")
     if not resume and prior is not None:
         raise ValueError(f"{out} already holds a run; pass --resume to continue it (or --resume --timesteps N "
                          "to extend it), or choose another --out")
@@ -550,6 +558,7 @@ def train(
                                                     if resume else 0)
     venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs, **start_env}))
     model, start_steps, prior_model_wall, with_buffer, ck_state = None, 0, 0.0, False, {}
+    spent_before = False
     if resume:
         model, start_steps, prior_model_wall, with_buffer, ck_state = _restore(cls, venv, ckpt_dir, normalize, out)
         if model is None:
@@ -557,22 +566,30 @@ def train(
                 raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
             print(f"blf-train: no complete checkpoint in {ckpt_dir}; starting {out} again from step 0",
                   file=sys.stderr)
-        elif prior is not None and prior.get("completed") and (out / "model.zip").is_file():
-            if start_steps >= timesteps:
+        else:
+            if prior is not None and int(prior.get("timesteps", -1)) == start_steps:
+                # a checkpoint keeps the wall time of its writing (a later save at the same step leaves
+                # it as it is); the metadata, recorded last, also counts what followed at that step
+                # (a curve point, the final save)
+                prior_model_wall = max(prior_model_wall, float(prior.get("wall_s_to_model", 0.0)))
+            finished = bool(prior is not None and prior.get("completed") and (out / "model.zip").is_file())
+            if finished and start_steps >= timesteps:
                 print(f"blf-train: {out} already has {start_steps} steps (requested {timesteps}); nothing to do. "
                       f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
                 venv.close()
                 return out
-            # the final save leaves a checkpoint written at the same step just before it as it was, so
-            # the metadata's wall time, recorded last, is the one that ended the run
-            spent = float(prior.get("wall_s_to_model", 0.0)) if int(prior.get("timesteps", -1)) == start_steps \
-                else prior_model_wall
-            if time_budget_s is not None and spent >= time_budget_s:
-                print(f"blf-train: {out} has spent its time budget ({spent:.0f} s of {time_budget_s:g} s, "
-                      f"{start_steps} steps); nothing to do. Pass --resume --time-budget S with a larger S to "
-                      "extend it.", file=sys.stderr)
-                venv.close()
-                return out
+            if time_budget_s is not None and prior_model_wall >= time_budget_s:
+                if finished:
+                    print(f"blf-train: {out} has spent its time budget ({prior_model_wall:.0f} s of {time_budget_s:g} "
+                          f"s, {start_steps} steps); nothing to do. Pass --resume --time-budget S with a larger S "
+                          "to extend it.", file=sys.stderr)
+                    venv.close()
+                    return out
+                # its last job ended (a kill, a restore elsewhere) before it recorded the run as finished
+                print(f"blf-train: {out} had spent its time budget ({prior_model_wall:.0f} s of {time_budget_s:g} s) "
+                      f"at its checkpoint of {start_steps} steps; training nothing, writing its final model",
+                      file=sys.stderr)
+                spent_before = True
     warm = (prior or {}).get("init_from") if resume else None
     if model is None:
         try:
@@ -667,11 +684,12 @@ def train(
         callbacks.append(refill)
     if time_budget_s is not None:
         callbacks.append(_make_time_budget_callback(clock, time_budget_s))
-    remaining = max(0, timesteps - start_steps)
+    remaining = 0 if spent_before else max(0, timesteps - start_steps)
     interrupted = False
     try:
-        model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not continuing,
-                    tb_log_name=run.algo)
+        if not spent_before:
+            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not continuing,
+                        tb_log_name=run.algo)
     except KeyboardInterrupt:
         interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
@@ -718,8 +736,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="total agent steps, one per control_period (default 100000; with --resume, the "
                         "run's requested total, and a larger N extends a finished run)")
     p.add_argument("--time-budget", type=float, default=None, metavar="S",
-                   help="end the run, as completed, once S seconds of wall clock (over all its segments) have "
-                        "trained it, even short of --timesteps (default: none; with --resume, the run's own)")
+                   help="end the run, as completed, once its model has taken S seconds of wall clock over all "
+                        "its segments, even short of --timesteps (default: none; with --resume, the run's own, "
+                        "which a larger S extends)")
     p.add_argument("--seed", type=int, default=None, metavar="S",
                    help="seed of the networks, the envs and the scenario draws (default 0)")
     p.add_argument("--config", default=None, metavar="YAML",

@@ -6,8 +6,9 @@
 # Starts the run in OUT when OUT holds none; otherwise resumes it from its newest complete
 # checkpoint and trains it up to STEPS agent steps in total (a run already at STEPS is left as it
 # is). The options are passed on both times: on a resume they must agree with the run's own
-# (blf-train refuses a contradiction), and --time-budget S ends the run once S seconds of wall clock
-# over all its segments have trained it ("as many steps as S seconds allow", with a large STEPS).
+# (blf-train refuses a contradiction), and --time-budget S ends the run once its model has taken S
+# seconds of wall clock over all its segments ("as many steps as S seconds allow", with a large
+# STEPS; a run whose budget is spent is left as it is).
 # Repeat the same command in the next job until it reports the run complete. A job that is killed
 # loses at most the steps since its last checkpoint (the config's checkpoint_freq).
 #
