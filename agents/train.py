@@ -251,12 +251,19 @@ def _read_metadata(path: Path) -> dict[str, Any]:
     return read_json_object(path, "the run's metadata", "; move it away to start a new run")
 
 
+def _nothing_to_do(venv: Any, out: Path, why: str) -> Path:
+    """A resume that trains nothing: say why, release the env's threads, and hand back the run."""
+    print(f"blf-train: {out} {why}", file=sys.stderr)
+    venv.close()
+    return out
+
+
 def _resume_settings(meta: dict[str, Any], given: dict[str, Any], where: Path) -> dict[str, Any]:
     """The run's own settings for ``--resume``; an explicit option that contradicts them is refused."""
     env_kwargs = meta.get("env_kwargs") or {}
     recorded = {"algo": meta.get("algo"), "mode": meta.get("mode"), "controller": env_kwargs.get("controller"),
                 "scenario": env_kwargs.get("scenario"), "seed": meta.get("seed"),
-                "observer": env_kwargs.get("observer", "leso")}
+                "observer": env_kwargs.get("observer", "leso"), "name": meta.get("name")}
     for key, value in given.items():
         if value is not None and recorded.get(key) is not None and value != recorded[key]:
             raise ValueError(f"--{key} {value} differs from the run's {recorded[key]!r} ({where}); "
@@ -516,16 +523,13 @@ def train(
                              f"({meta_path}); a resume keeps a run's budget or extends it")
         if time_budget_s is None and recorded is not None:
             time_budget_s = float(recorded)
-        if name is not None and prior.get("name") and name != prior["name"]:
-            raise ValueError(f"--name {name} differs from the run's name {prior['name']!r} ({meta_path}); "
-                             "--resume keeps a run's name, so drop --name or choose another --out")
     if not resume and prior is not None:
         raise ValueError(f"{out} already holds a run; pass --resume to continue it (or --resume --timesteps N "
                          "to extend it), or choose another --out")
     if resume and prior is None and not ckpt_dir.is_dir():
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
     given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
-             "observer": observer}
+             "observer": observer, "name": name}
     if not isinstance(overrides, Mapping):
         overrides = parse_overrides(overrides)
     run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path, overrides)
@@ -574,17 +578,13 @@ def train(
                 prior_model_wall = max(prior_model_wall, float(prior.get("wall_s_to_model", 0.0)))
             finished = bool(prior is not None and prior.get("completed") and (out / "model.zip").is_file())
             if finished and start_steps >= timesteps:
-                print(f"blf-train: {out} already has {start_steps} steps (requested {timesteps}); nothing to do. "
-                      f"Pass --resume --timesteps N with N > {start_steps} to extend it.", file=sys.stderr)
-                venv.close()
-                return out
+                return _nothing_to_do(venv, out, f"already has {start_steps} steps (requested {timesteps}); nothing "
+                                      f"to do. Pass --resume --timesteps N with N > {start_steps} to extend it.")
             if time_budget_s is not None and prior_model_wall >= time_budget_s:
                 if finished:
-                    print(f"blf-train: {out} has spent its time budget ({prior_model_wall:.0f} s of {time_budget_s:g} "
-                          f"s, {start_steps} steps); nothing to do. Pass --resume --time-budget S with a larger S "
-                          "to extend it.", file=sys.stderr)
-                    venv.close()
-                    return out
+                    return _nothing_to_do(venv, out, f"has spent its time budget ({prior_model_wall:.0f} s of "
+                                          f"{time_budget_s:g} s, {start_steps} steps); nothing to do. Pass --resume "
+                                          "--time-budget S with a larger S to extend it.")
                 # its last job ended (a kill, a restore elsewhere) before it recorded the run as finished
                 print(f"blf-train: {out} had spent its time budget ({prior_model_wall:.0f} s of {time_budget_s:g} s) "
                       f"at its checkpoint of {start_steps} steps; training nothing, writing its final model",
