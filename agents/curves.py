@@ -93,9 +93,13 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
     for j in (1, 2):
         axes[-1, j].axis("off")
     if log_steps:
+        from matplotlib.ticker import NullFormatter
+
         axes[-1, 0].set_xscale("log")
         axes[-1, 0].set_yscale("symlog", linthresh=1.0)
         axes[-1, 0].set_ylim(bottom=0.0)
+        for ax in axes.flat:  # label the decades only: matplotlib's minor labels overlap on a short span
+            ax.xaxis.set_minor_formatter(NullFormatter())
     for j in range(3):
         axes[-1, j].set_xlabel("training steps (log; step 0 drawn at half the first evaluation)" if log_steps
                                else "training steps (thousands)")

@@ -61,6 +61,7 @@ HEADLINE = (
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
     ("plain PPO at 50M steps (sbx, seed 0 of 3)", "learning", "budget/protocol_s0", "sbx_ppo_256_s0", "budget.md"),
+    ("SAC for the same wall clock (sbx, seed 0 of 3)", "learning", "budget/protocol_sac", "sbx_sac_s0", "budget.md"),
     ("PPO-Lagrangian, warm-started from plain PPO (seed 0)", "learning", "budget/protocol_warm",
      "ppo_lagrangian_warm_s0", "lagrangian.md"),
 )
@@ -215,6 +216,7 @@ VERDICT_ROWS = (
      "ppo_residual_certified+barrier:handback=0.0033",
      ("agents/pretrained/ppo_residual_certified", "docs/protocol_certified/runs/ppo_residual_certified_s*")),
     ("plain PPO at scale (sbx)", "budget/protocol_scale", "sbx_ppo_256", ("docs/budget/runs/sbx_ppo_256_s*",)),
+    ("SAC for PPO's wall clock (sbx)", "budget/protocol_sac", "sbx_sac", ("docs/budget/runs/sbx_sac_s*",)),
 )
 """The learners of the verdict: rliable's statistics over their seeds, beside their budgets."""
 
@@ -890,6 +892,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     },
     "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table,
                        "scale-statistics": lambda: statistics_table("budget/protocol_scale", ("proposed", "sbx_ppo_256")),
+                       "sac-statistics": lambda: statistics_table("budget/protocol_sac", ("proposed", "sbx_sac")),
                        "residual-rates": residual_rates_table,
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
