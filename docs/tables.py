@@ -61,8 +61,8 @@ HEADLINE = (
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
     ("plain PPO at 50M steps (sbx, seed 0 of 3)", "learning", "budget/protocol_s0", "sbx_ppo_256_s0", "budget.md"),
-    ("SAC for the same wall clock (sbx, seed 0 of 3)", "learning", "budget/protocol_sac", "sbx_sac_s0", "budget.md"),
-    ("PPO-Lagrangian, warm-started from plain PPO (seed 0)", "learning", "budget/protocol_warm",
+    ("SAC for PPO's wall clock (sbx, seed 0 of 3)", "learning", "budget/protocol_sac", "sbx_sac_s0", "budget.md"),
+    ("PPO-Lagrangian, warm-started from plain PPO (seed 0 of 3)", "learning", "budget/protocol_warm",
      "ppo_lagrangian_warm_s0", "lagrangian.md"),
 )
 """The headline comparison's rows: one per method, its shipped or best configuration."""
@@ -217,6 +217,9 @@ VERDICT_ROWS = (
      ("agents/pretrained/ppo_residual_certified", "docs/protocol_certified/runs/ppo_residual_certified_s*")),
     ("plain PPO at scale (sbx)", "budget/protocol_scale", "sbx_ppo_256", ("docs/budget/runs/sbx_ppo_256_s*",)),
     ("SAC for PPO's wall clock (sbx)", "budget/protocol_sac", "sbx_sac", ("docs/budget/runs/sbx_sac_s*",)),
+    ("PPO-Lagrangian, warm-started from plain PPO", "budget/protocol_warm", "ppo_lagrangian_warm",
+     ("docs/budget/runs/ppo_lagrangian_warm_s*",)),
+    ("plain PPO, the same warm start", "budget/protocol_warm", "ppo_warm", ("docs/budget/runs/ppo_warm_s*",)),
 )
 """The learners of the verdict: rliable's statistics over their seeds, beside their budgets."""
 
@@ -533,12 +536,17 @@ LAGRANGIAN_RUNS = (("lagrangian_s0_presets", "ppo_lagrangian_s0", "none"),
                   ("lagrangian_warm_s0_presets", "ppo_lagrangian_warm_s0",
                    "none; warm start from ppo_plain; termination_cost 3000; limit 2800 to 25 over 2M steps; "
                    "plain PPO's reward, not normalised"),
-                  ("ppo_warm_s0_presets", "ppo_warm_s0", "none; plain PPO, warm start from ppo_plain"))
+                  ("ppo_warm_s0_presets", "ppo_warm_s0", "none; plain PPO, warm start from ppo_plain"),
+                  ("protocol_warm", "ppo_lagrangian_warm_s1", "as ppo_lagrangian_warm_s0, seed 1"),
+                  ("protocol_warm", "ppo_lagrangian_warm_s2", "as ppo_lagrangian_warm_s0, seed 2"),
+                  ("protocol_warm", "ppo_warm_s1", "as ppo_warm_s0, seed 1"),
+                  ("protocol_warm", "ppo_warm_s2", "as ppo_warm_s0, seed 2"))
 """The seed-0 runs of budget.md section 4 (PPO-Lagrangian after its fix, without and with the funnel
 curriculum, plain PPO with the same curriculum, PPO-Lagrangian charged for terminated episodes, with
 a cost-limit schedule as well, with plain PPO's reward, and warm-started from plain PPO, beside plain
-PPO given the same warm start): folder under docs/budget, agent, curriculum (and the other set-up
-changes)."""
+PPO given the same warm start), then seeds 1 and 2 of the last two, scored on the whole protocol
+(``docs/budget/scale_eval.sh``, whose preset episodes are those of ``--suite-seeds 0``): folder under
+docs/budget, agent, curriculum (and the other set-up changes)."""
 
 
 def lagrangian_presets_table() -> str:
@@ -893,6 +901,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table,
                        "scale-statistics": lambda: statistics_table("budget/protocol_scale", ("proposed", "sbx_ppo_256")),
                        "sac-statistics": lambda: statistics_table("budget/protocol_sac", ("proposed", "sbx_sac")),
+                       "warm-statistics": lambda: statistics_table("budget/protocol_warm",
+                                                                   ("proposed", "ppo_lagrangian_warm", "ppo_warm")),
                        "residual-rates": residual_rates_table,
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
