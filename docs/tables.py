@@ -268,6 +268,35 @@ def residual_rates_table() -> str:
     return "\n".join(out) + "\n"
 
 
+FUSED_ROUNDS = 3
+"""Interleaved rounds of path 2 and path 2 with PyTorch's fused Adam (docs/budget.md, section 1):
+``docs/budget/rates/fused/r2_<k>.json`` and ``r5_<k>.json``, k = 1..FUSED_ROUNDS."""
+
+
+def fused_rounds_table() -> str:
+    """Path 2 of :data:`RESIDUAL_RATE_PATHS` against the same path with a fused Adam step, measured in
+    interleaved rounds: each round's agent steps/s and update seconds, the medians and their ratio."""
+    import json
+    import statistics
+
+    def load(name: str) -> dict:
+        return json.loads((DOCS / "budget" / "rates" / "fused" / f"{name}.json").read_text())
+
+    rows = [(load(f"r2_{k}"), load(f"r5_{k}")) for k in range(1, FUSED_ROUNDS + 1)]
+    rate = [[r["steps"] / r["wall_s"] for r in pair] for pair in rows]
+    upd = [[r["seconds"]["update"] for r in pair] for pair in rows]
+    out = ["| round | path 2: agent steps/s | its update (s) | path 2, fused Adam: agent steps/s | its update (s) |",
+           "|---|---|---|---|---|"]
+    for k, (a, b) in enumerate(rate):
+        out.append(f"| {k + 1} | {a:,.0f} | {upd[k][0]:.1f} | {b:,.0f} | {upd[k][1]:.1f} |")
+    med = [statistics.median(x[i] for x in rate) for i in (0, 1)]
+    mu = [statistics.median(x[i] for x in upd) for i in (0, 1)]
+    out.append(f"| median | {med[0]:,.0f} | {mu[0]:.1f} | {med[1]:,.0f} ({med[1] / med[0]:.2f}x; "
+               f"{med[1] / ISSUE_RESIDUAL_RATE:.1f}x the first measured {ISSUE_RESIDUAL_RATE}) | "
+               f"{mu[1]:.1f} ({mu[1] / mu[0]:.2f}x) |")
+    return "\n".join(out) + "\n"
+
+
 def verdict_table() -> str:
     """Each learner of :data:`VERDICT_ROWS`: seeds, agent steps and wall clock per run (from the runs'
     kept metadata), and rliable's IQM ``score_vs_law`` over seeds x episodes with its 95 % interval
@@ -901,6 +930,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/budget.md": {"lagrangian-presets": lagrangian_presets_table,
                        "scale-statistics": lambda: statistics_table("budget/protocol_scale", ("proposed", "sbx_ppo_256")),
                        "sac-statistics": lambda: statistics_table("budget/protocol_sac", ("proposed", "sbx_sac")),
+                       "fused-rounds": fused_rounds_table,
                        "warm-statistics": lambda: statistics_table("budget/protocol_warm",
                                                                    ("proposed", "ppo_lagrangian_warm", "ppo_warm")),
                        "residual-rates": residual_rates_table,
