@@ -271,6 +271,9 @@ def residual_rates_table() -> str:
 FUSED_ROUNDS = 3
 """Interleaved rounds of path 2 and path 2 with PyTorch's fused Adam (docs/budget.md, section 1):
 ``docs/budget/rates/fused/r2_<k>.json`` and ``r5_<k>.json``, k = 1..FUSED_ROUNDS."""
+FUSED_OVERRIDE = "policy_kwargs.optimizer_kwargs={fused: true, eps: 1.0e-5}"
+"""The ``--set`` of the fused rounds: SB3's Adam eps (1e-5, which SB3 sets only when no
+optimizer_kwargs are given) kept, so only the kernel differs."""
 
 
 def fused_rounds_table() -> str:
@@ -283,6 +286,10 @@ def fused_rounds_table() -> str:
         return json.loads((DOCS / "budget" / "rates" / "fused" / f"{name}.json").read_text())
 
     rows = [(load(f"r2_{k}"), load(f"r5_{k}")) for k in range(1, FUSED_ROUNDS + 1)]
+    for k, (a, b) in enumerate(rows, 1):
+        if a["overrides"] != [] or b["overrides"] != [FUSED_OVERRIDE]:
+            raise ValueError(f"docs/budget/rates/fused, round {k}: expected no --set, then --set {FUSED_OVERRIDE!r}; "
+                             f"the files have {a['overrides']} and {b['overrides']}")
     rate = [[r["steps"] / r["wall_s"] for r in pair] for pair in rows]
     upd = [[r["seconds"]["update"] for r in pair] for pair in rows]
     out = ["| round | path 2: agent steps/s | its update (s) | path 2, fused Adam: agent steps/s | its update (s) |",

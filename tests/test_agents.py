@@ -851,3 +851,29 @@ def test_the_budget_plans_run_the_commands_docs_budget_md_states(tmp_path):
     assert got == [documented("ppo_lagrangian_warm", 2), documented("ppo_warm", 2)]
     assert calls("E", "R", "1") == [documented("sbx_sac", 1)]
     assert calls("E", "R") == [documented("sbx_sac", s) for s in (0, 1, 2)]
+
+
+def test_a_fused_adam_step_reaches_the_optimizer_and_updates_as_the_default_does(tmp_path):
+    """``--set "policy_kwargs.optimizer_kwargs={fused: true, eps: 1.0e-5}"`` (docs/training.md)
+    reaches the saved model's optimizer, and changes the update only in the rounding: the same seed
+    and data give the same weights to float32 precision as the default optimizer, while one update
+    more moves them far beyond that. The eps matters: SB3 gives Adam eps 1e-5 only when no
+    optimizer_kwargs are given, so ``{fused: true}`` alone would also change eps to torch's 1e-8."""
+    import torch
+    from stable_baselines3 import PPO
+
+    cfg = str(_tiny(tmp_path, "ppo"))
+    params = {}
+    for label, steps, extra in (("default", 128, []), ("one update fewer", 64, []),
+                                ("fused", 128, ["--set", "policy_kwargs.optimizer_kwargs={fused: true, eps: 1.0e-5}"])):
+        out = tmp_path / label.replace(" ", "_")
+        assert train_main(["--algo", "ppo", "--mode", "plain", "--config", cfg, "--out", str(out), "--seed", "3",
+                           "--timesteps", str(steps), "--no-progress", *extra]) == 0
+        model = PPO.load(out / "model.zip", device="cpu")
+        assert bool(model.policy.optimizer.defaults.get("fused")) is (label == "fused")
+        assert model.policy.optimizer.defaults["eps"] == 1e-5
+        params[label] = torch.nn.utils.parameters_to_vector(model.policy.parameters()).detach().numpy()
+    # the tiny config's rollout is 2 arms x 32 steps, two minibatches of 32: 128 steps are two
+    # updates, 64 one; an Adam step moves a weight by up to about the learning rate (3e-4)
+    assert np.max(np.abs(params["default"] - params["one update fewer"])) > 2e-4
+    np.testing.assert_allclose(params["fused"], params["default"], rtol=1e-5, atol=1e-6)
