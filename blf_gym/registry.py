@@ -12,7 +12,7 @@ yours registers its own the same way, and every command and ``gym.make`` then ac
 Whole policies that act on the plain env from its observation (a model-predictive controller, say)
 are found the same way, in the group ``blf_gym.policies``: each entry point is a factory of an
 object with SB3's ``predict(observation, state, episode_start, deterministic)`` and an
-``env_kwargs`` dict, the arguments of the env it acts in (``blf-eval`` does not take them yet).
+``env_kwargs`` dict, the arguments of the env it acts in (``blf-eval --policies NAME`` scores one).
 """
 
 from __future__ import annotations

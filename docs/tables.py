@@ -210,16 +210,18 @@ certified residual's five seeds through the barrier filter without and with the 
 
 
 VERDICT_ROWS = (
-    # label, the report (folder under docs/), its pooled policy name, the runs' metadata files (globs)
-    ("PPO residual over the law", "protocol_certified", "ppo_residual", ("agents/pretrained/ppo_residual",)),
-    ("PPO residual, barrier filter with hand-back", "protocol_certified_handback/barrier_handback",
+    # label, the report (folder under docs/ and file), its pooled policy name, the runs' metadata files (globs)
+    ("PPO residual over the law", "", "seeds_report.json", "ppo_residual", ("agents/pretrained/ppo_residual",)),
+    ("PPO residual, barrier filter with hand-back", "protocol_certified_handback/barrier_handback", "report.json",
      "ppo_residual_certified+barrier:handback=0.0033",
      ("agents/pretrained/ppo_residual_certified", "docs/protocol_certified/runs/ppo_residual_certified_s*")),
-    ("plain PPO at scale (sbx)", "budget/protocol_scale", "sbx_ppo_256", ("docs/budget/runs/sbx_ppo_256_s*",)),
-    ("SAC for PPO's wall clock (sbx)", "budget/protocol_sac", "sbx_sac", ("docs/budget/runs/sbx_sac_s*",)),
-    ("PPO-Lagrangian, warm-started from plain PPO", "budget/protocol_warm", "ppo_lagrangian_warm",
+    ("plain PPO at scale (sbx)", "budget/protocol_scale", "report.json", "sbx_ppo_256",
+     ("docs/budget/runs/sbx_ppo_256_s*",)),
+    ("SAC for PPO's wall clock (sbx)", "budget/protocol_sac", "report.json", "sbx_sac", ("docs/budget/runs/sbx_sac_s*",)),
+    ("PPO-Lagrangian, warm-started from plain PPO", "budget/protocol_warm", "report.json", "ppo_lagrangian_warm",
      ("docs/budget/runs/ppo_lagrangian_warm_s*",)),
-    ("plain PPO, the same warm start", "budget/protocol_warm", "ppo_warm", ("docs/budget/runs/ppo_warm_s*",)),
+    ("plain PPO, the same warm start", "budget/protocol_warm", "report.json", "ppo_warm",
+     ("docs/budget/runs/ppo_warm_s*",)),
 )
 """The learners of the verdict: rliable's statistics over their seeds, beside their budgets."""
 
@@ -304,7 +306,7 @@ def fused_rounds_table() -> str:
     return "\n".join(out) + "\n"
 
 
-def verdict_table() -> str:
+def verdict_table(prefix: str = "") -> str:
     """Each learner of :data:`VERDICT_ROWS`: seeds, agent steps and wall clock per run (from the runs'
     kept metadata), and rliable's IQM ``score_vs_law`` over seeds x episodes with its 95 % interval
     and the failure rate, on the training suite's held-out episodes and on the stress suite (its 50
@@ -312,12 +314,12 @@ def verdict_table() -> str:
     out = ["| learner | seeds | agent steps per run | wall clock per run | IQM, training suite [95 % CI] | "
            "IQM, stress [95 % CI] (episodes per seed) | failure rate, training / stress |",
            "|---|---|---|---|---|---|---|"]
-    for label, folder, policy, globs in VERDICT_ROWS:
-        stats = _load(folder, "report.json")["statistics"]
+    for label, folder, report, policy, globs in VERDICT_ROWS:
+        stats = _load(folder, report)["statistics"]
         st = {x["scenario"]: x for x in stats if x["policy"] == policy}
         missing = [g for g in ("randomized", "stress") if g not in st]
         if missing:
-            raise ValueError(f"docs/{folder}/report.json has no statistics for {policy} on {missing}")
+            raise ValueError(f"docs/{folder}/{report} has no statistics for {policy} on {missing}")
         kept, steps, wall = _budget(globs)
         seeds = len(st["randomized"]["seeds"])
         if kept < seeds:
@@ -325,6 +327,8 @@ def verdict_table() -> str:
         out.append(f"| {label} | {seeds} | {steps} | {wall} | "
                    f"{_ci(st['randomized'], 'iqm', 3)} | {_ci(st['stress'], 'iqm', 3)} ({st['stress']['episodes']}) | "
                    f"{st['randomized']['failure_rate']:.2f} / {st['stress']['failure_rate']:.2f} |")
+    out += ["", "Stress episodes per seed: the suite's 50 (seeds 20000-20049), or 100 (seeds 20000-20099) where "
+            f"the certificate's report scored those ([the certificate]({prefix}certificate.md))."]
     return "\n".join(out) + "\n"
 
 
@@ -910,7 +914,7 @@ MEASURED_BLOCKS = (
 
 
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
-    "README.md": {"headline": lambda: headline_table("docs/"), "verdict": verdict_table},
+    "README.md": {"headline": lambda: headline_table("docs/"), "verdict": lambda: verdict_table("docs/")},
     "docs/reproduction.md": {"reproduction": reproduction_table},
     "docs/results.md": {
         "headline": lambda: headline_table(here="results.md"),

@@ -9,8 +9,9 @@
 # Keeping copies RUN's metadata.json, its learning curve (eval/curve.json, as curve.json) and its
 # newest complete checkpoint folder (checkpoints/step_<N>: a step_ folder is complete by
 # construction, agents/checkpoints.py) into KEPT, replacing the checkpoint kept before, so that a
-# commit holds one checkpoint per run. A finished run's model (model.zip, and vecnormalize.pkl when
-# it has one) is kept too, so that `blf-eval --agents KEPT` scores it as it is. Restoring copies
+# commit holds one checkpoint per run. The run's model.zip (and vecnormalize.pkl when it has one)
+# is kept too, so that `blf-eval --agents KEPT` scores it as it is; for a run stopped mid-way that
+# is its last segment's model, and docs/budget/scale_eval.sh scores completed runs only. Restoring copies
 # the metadata, curve and checkpoint back into RUN's layout.
 #
 # An off-policy checkpoint's replay buffer (replay_buffer.pkl, about 270 MB at 1M samples) is not
