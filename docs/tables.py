@@ -256,10 +256,7 @@ training on the two cores), the base of its five-fold goal."""
 def residual_rates_table() -> str:
     """The residual configuration's agent steps/s on each path of :data:`RESIDUAL_RATE_PATHS`, end
     to end and without the learning-curve evaluations, against path 1 and the issue's figure."""
-    import json
-
-    runs = [(label, json.loads((DOCS / "budget" / "rates" / f"{name}.json").read_text()))
-            for label, name in RESIDUAL_RATE_PATHS]
+    runs = [(label, _load("budget/rates", f"{name}.json")) for label, name in RESIDUAL_RATE_PATHS]
     base = runs[0][1]["steps"] / runs[0][1]["wall_s"]
     out = ["| path | agent steps/s end to end | without curve evaluations | against path 1 | "
            f"against the first measured {ISSUE_RESIDUAL_RATE} |", "|---|---|---|---|---|"]
@@ -281,13 +278,10 @@ optimizer_kwargs are given) kept, so only the kernel differs."""
 def fused_rounds_table() -> str:
     """Path 2 of :data:`RESIDUAL_RATE_PATHS` against the same path with a fused Adam step, measured in
     interleaved rounds: each round's agent steps/s and update seconds, the medians and their ratio."""
-    import json
     import statistics
 
-    def load(name: str) -> dict:
-        return json.loads((DOCS / "budget" / "rates" / "fused" / f"{name}.json").read_text())
-
-    rows = [(load(f"r2_{k}"), load(f"r5_{k}")) for k in range(1, FUSED_ROUNDS + 1)]
+    rows = [(_load("budget/rates/fused", f"r2_{k}.json"), _load("budget/rates/fused", f"r5_{k}.json"))
+            for k in range(1, FUSED_ROUNDS + 1)]
     for k, (a, b) in enumerate(rows, 1):
         if a["overrides"] != [] or b["overrides"] != [FUSED_OVERRIDE]:
             raise ValueError(f"docs/budget/rates/fused, round {k}: expected no --set, then --set {FUSED_OVERRIDE!r}; "
