@@ -308,6 +308,7 @@ def verdict_table(prefix: str = "") -> str:
     out = ["| learner | seeds | agent steps per run | wall clock per run | IQM, training suite [95 % CI] | "
            "IQM, stress [95 % CI] (episodes per seed) | failure rate, training / stress |",
            "|---|---|---|---|---|---|---|"]
+    stress_episodes = set()
     for label, folder, report, policy, globs in VERDICT_ROWS:
         stats = _load(folder, report)["statistics"]
         st = {x["scenario"]: x for x in stats if x["policy"] == policy}
@@ -318,11 +319,17 @@ def verdict_table(prefix: str = "") -> str:
         seeds = len(st["randomized"]["seeds"])
         if kept < seeds:
             wall += f" ({kept} of {seeds} runs' metadata kept)"
+        stress_episodes.add(st["stress"]["episodes"])
         out.append(f"| {label} | {seeds} | {steps} | {wall} | "
                    f"{_ci(st['randomized'], 'iqm', 3)} | {_ci(st['stress'], 'iqm', 3)} ({st['stress']['episodes']}) | "
                    f"{st['randomized']['failure_rate']:.2f} / {st['stress']['failure_rate']:.2f} |")
-    out += ["", "Stress episodes per seed: the suite's 50 (seeds 20000-20049), or 100 (seeds 20000-20099) where "
-            f"the certificate's report scored those ([the certificate]({prefix}certificate.md))."]
+    from blf_gym.scenarios import STRESS_SEED_OFFSET as s0
+
+    suite, *more = sorted(stress_episodes)
+    out += ["", f"Stress episodes per seed: the suite's {suite} (seeds {s0}-{s0 + suite - 1})"
+            + "".join(f", or {n} (seeds {s0}-{s0 + n - 1})" for n in more)
+            + (f" where the certificate's report scored those ([the certificate]({prefix}certificate.md))." if more
+               else ".")]
     return "\n".join(out) + "\n"
 
 
