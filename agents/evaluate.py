@@ -551,6 +551,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="with --out: also save trajectories as npz (default off)")
     p.add_argument("--no-plots", action="store_true", help="with --out: skip the PNG plots (default: drawn)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar (default: shown)")
+    p.add_argument("--accept-changed-files", action="store_true",
+                   help="score an agent whose model.zip or vecnormalize.pkl differs from the sha256 its metadata.json "
+                        "recorded when it was saved (default: refused, naming the file)")
     p.add_argument("--fresh-law", action="store_true",
                    help="simulate the proposed law's episodes (its own row and every score's reference) even "
                         "when identical ones are kept from an earlier run: by default they are reused when the "
@@ -766,7 +769,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             import torch
 
             torch.set_num_threads(1)
-        agents = [(p, *load_agent(p)) for p in agent_paths]
+        agents = [(p, *load_agent(p, bool(getattr(args, "accept_changed_files", False)))) for p in agent_paths]
         if args.residual_filter is not None:
             agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
         from blf_gym.registry import available_policies
@@ -825,6 +828,7 @@ class _Context:
     want_first: bool
     residual_filter: str | None
     law_folder: Path
+    accept_changed_files: bool = False
 
     def inner_key(self, g: int) -> str:
         """The law cache's key of the proposed law with the LESO on the inner path, on group ``g``."""
@@ -928,7 +932,7 @@ def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
         import torch
 
         torch.set_num_threads(1)  # as in the main process (see main)
-        model, meta, norm = load_agent(agent)
+        model, meta, norm = load_agent(agent, ctx.accept_changed_files)
         if ctx.residual_filter is not None:
             meta = with_filter(meta, ctx.residual_filter)
     else:
@@ -1093,7 +1097,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                    threads=args.threads if args.threads is not None or n_jobs <= 1 else 1,
                    fresh=bool(getattr(args, "fresh_law", False)), save_traj=bool(args.save_traj), out=args.out,
                    want_first=args.out is not None and not args.no_plots,
-                   residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder())
+                   residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder(),
+                   accept_changed_files=bool(getattr(args, "accept_changed_files", False)))
     whole = [sc for _, scs in groups for sc in scs]
 
     # the pieces, and which law each record is scored against: ("inner", g) for a baseline, (tag, g)

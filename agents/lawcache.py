@@ -11,16 +11,18 @@ What must be the same (all folded into one sha256 key, the file's name):
 
 * the source of every module the result depends on: every ``.py`` file of ``blf_gym``,
   ``baselines`` and ``agents``, and of the top-level package of each plug-in the law runs with (its
-  controller and observer, found through their entry points);
+  controller and observer, found through their entry points), and the import closure of the kernel
+  and of each plug-in module (:func:`blf_gym.sources.digest`), which follows a plug-in's imports
+  out of its package into local code;
 * numpy's, numba's and llvmlite's versions, Python's, and the CPU numba compiles for (its name and
   features: the machine code, and so the last bits, depend on them);
 * what was run: the path (inner, or the env's arguments), the observer, every scenario in full
   (their dataclass ``repr``, which prints every float to the bit) and the noise seeds.
 
 Anything else (a different machine sharing a home folder, an edited file, a new numba) gives a new
-key and so a fresh run. One thing the key cannot see: code that a plug-in imports from a package
-other than its own (say a helper library of yours). After editing such code, run ``blf-eval
---fresh-law`` once: it ignores the kept files and replaces them. A file that cannot be read, or
+key and so a fresh run. One thing the key cannot see: code that a plug-in imports from another
+package installed into ``site-packages`` (not in editable mode); after reinstalling such a package
+with changed code, run ``blf-eval --fresh-law`` once: it ignores the kept files and replaces them. A file that cannot be read, or
 does not hold what its key says, is ignored and rewritten. Files are written atomically.
 ``BLF_GYM_CACHE_DIR`` moves the cache (with the compiled glue) elsewhere; deleting the folder is
 always safe.
@@ -38,6 +40,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from blf_gym import sources
 from blf_gym.io import atomic_write_text, cache_dir
 from blf_gym.metrics import EpisodeStats
 
@@ -89,6 +92,9 @@ def code_digest(controller: str = "proposed", observer: str = "leso") -> str:
     for f in sorted(files):
         h.update(str(f.name).encode())
         h.update(f.read_bytes())
+    # and the import closure of the law's kernel and of each plug-in module: what a plug-in imports
+    # from outside its own package (a local helper module) is compiled into the kernel too
+    h.update(sources.digest("blf_gym.simulate", *_plugin_modules(controller, observer)).encode())
     host = f"{llvm.get_host_cpu_name()} {llvm.get_host_cpu_features().flatten()}"
     for part in (np.__version__, numba.__version__, llvmlite.__version__, platform.python_version(),
                  platform.machine(), host):

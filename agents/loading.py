@@ -17,6 +17,10 @@ whole, before anything is scored:
   and the file missing, or stated false and the file present, is refused, and so is no statement
   at all (the file's presence alone is not evidence: scored without its statistics, an agent's
   RMSE is several times worse, silently);
+* the model and the statistics must be the files the agent was saved with: ``metadata.json``'s
+  ``files`` holds their sha256 (written by blf-train and agents.zoo), and a file that differs, is
+  missing or is not listed is refused unless accepted knowingly (``accept_changed_files``); a folder
+  written before the hashes existed loads with a one-line warning;
 * the statistics must be readable, normalize observations, and match the model's observation size;
 * the model's own observation and action spaces (saved in ``model.zip``) must be the env's: the
   same shape and the same Box bounds.
@@ -30,6 +34,7 @@ from __future__ import annotations
 import json
 import pickle
 import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -260,6 +265,81 @@ def _check_spaces(model: Any, meta: dict[str, Any], meta_path: Path, model_path:
                          f"builds takes {want} (one normalized torque per joint)")
 
 
+HASHED_FILES = ("model.zip", "vecnormalize.pkl")
+"""The files of an agent folder whose sha256 the metadata records (``files``) and the loader checks."""
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def file_hashes(folder: str | Path) -> dict[str, str]:
+    """``{name: sha256}`` of each of :data:`HASHED_FILES` present in ``folder``: what an agent's
+    ``metadata.json`` records under ``files`` when the folder is written (blf-train, agents.zoo,
+    :func:`record_file_hashes`)."""
+    folder = Path(folder)
+    return {name: _sha256(folder / name) for name in HASHED_FILES if (folder / name).is_file()}
+
+
+def record_file_hashes(folder: str | Path) -> dict[str, str]:
+    """Write the sha256 of the folder's model and statistics into its ``metadata.json`` (``files``),
+    atomically, leaving every other field as it is; returns them. For a folder written before the
+    hashes existed, or one whose files you replaced on purpose."""
+    from blf_gym.io import atomic_write_json
+
+    folder = Path(folder)
+    meta_path = folder / "metadata.json"
+    meta = read_json_object(meta_path, "the run's metadata")
+    meta["files"] = file_hashes(folder)
+    atomic_write_json(meta_path, meta)
+    return meta["files"]
+
+
+_UNHASHED_WARNED: set[Path] = set()
+
+
+def _check_files(meta: dict[str, Any], meta_path: Path, accept_changed_files: bool) -> None:
+    """The folder's model and statistics against the sha256 that ``metadata.json`` recorded when the
+    folder was written: a file swapped in from another agent (a ``vecnormalize.pkl`` of the same
+    observation size loads, and scores differently) is refused by name."""
+    folder = meta_path.parent
+    recorded = meta.get("files")
+    if recorded is None:
+        if meta_path not in _UNHASHED_WARNED:
+            _UNHASHED_WARNED.add(meta_path)
+            warnings.warn(f"{meta_path}: no 'files' field, so its model and statistics cannot be checked against "
+                          "what was saved (written before blf-gym recorded them); record them with python -m "
+                          f"agents.loading --record-hashes {folder}", stacklevel=3)
+        return
+    if not isinstance(recorded, dict) or not all(isinstance(k, str) and isinstance(v, str)
+                                                 for k, v in recorded.items()):
+        raise ValueError(f"{meta_path}: files: must map file names to sha256 hex digests, got {_short(recorded)}")
+    if accept_changed_files:
+        return
+    hint = ("; if you replaced it on purpose, accept it knowingly with load_agent(..., accept_changed_files=True) "
+            f"or blf-eval --accept-changed-files, or record the new hashes with python -m agents.loading "
+            f"--record-hashes {folder}")
+    present = file_hashes(folder)
+    for name in HASHED_FILES:
+        want, got = recorded.get(name), present.get(name)
+        if want == got:
+            continue
+        if want is None:
+            raise ValueError(f"{folder / name}: present, but metadata.json's files do not list it: it was not "
+                             f"saved with this agent{hint}")
+        if got is None:
+            raise ValueError(f"{folder / name}: missing, but metadata.json's files list it (sha256 {want[:12]}...)"
+                             f"{hint}")
+        raise ValueError(f"{folder / name}: sha256 {got[:12]}... is not the {want[:12]}... that metadata.json "
+                         f"recorded when the agent was saved: it is another file{hint}")
+
+
 def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
     if not meta_path.is_file():
         raise ValueError(f"{model_path}: no metadata.json beside the model; was it written by blf-train?")
@@ -270,11 +350,12 @@ def _metadata(meta_path: Path, model_path: Path) -> dict[str, Any]:
     return meta
 
 
-def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
+def load_agent(path: str | Path, accept_changed_files: bool = False) -> tuple[Any, dict[str, Any], Any]:
     """(SB3 model, metadata, VecNormalize statistics or None) from a ``blf-train`` run folder or its
     model zip, checked as a whole (the module docstring lists the checks; each problem is one
     ``ValueError`` naming the file and the field). The env kwargs the agent was trained with are
-    ``metadata["env_kwargs"]``."""
+    ``metadata["env_kwargs"]``. ``accept_changed_files``: load a model or statistics file whose
+    sha256 differs from the one the metadata recorded (you replaced it on purpose)."""
     path = Path(path)
     if path.is_dir():
         if not (path / "model.zip").is_file():
@@ -297,6 +378,9 @@ def load_agent(path: str | Path) -> tuple[Any, dict[str, Any], Any]:
     stats = path.with_name("vecnormalize.pkl")
     norm = _statistics(stats, path, model) if _normalization_stated(meta, meta_path, stats) else None
     _check_spaces(model, meta, meta_path, path, _scoring_core(meta, meta_path))
+    # last: a damaged file is named by the checks above; what they cannot see is a whole file swapped
+    # in from another agent of the same sizes
+    _check_files(meta, meta_path, accept_changed_files)
     return model, meta, norm
 
 
@@ -326,11 +410,11 @@ def load_policy(name: str) -> tuple[Any, dict[str, Any], None]:
     return policy, meta, None
 
 
-def check_agent_folder(path: str | Path) -> None:
+def check_agent_folder(path: str | Path, accept_changed_files: bool = False) -> None:
     """Check a ``blf-train`` run folder (or its model zip) as :func:`load_agent` does, without
     keeping the model: returns None, or raises the one-line ``ValueError`` naming the file and the
     field at fault."""
-    load_agent(path)
+    load_agent(path, accept_changed_files)
 
 
 def pretrained_agents() -> list[str]:
@@ -391,3 +475,26 @@ def load_pretrained(name: str | Path, scenario: str | None = None, reward: str =
     norm.training = False
     norm.norm_reward = False
     return model, norm
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m agents.loading --record-hashes DIR [DIR ...]``: record the sha256 of each folder's
+    model and statistics in its metadata.json; ``python -m agents.loading DIR``: check a folder."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m agents.loading", description=main.__doc__)
+    ap.add_argument("folders", nargs="+", type=Path, help="agent folders (blf-train run folders)")
+    ap.add_argument("--record-hashes", action="store_true",
+                    help="write the sha256 of model.zip and vecnormalize.pkl into metadata.json's files, then check")
+    args = ap.parse_args(argv)
+    for folder in args.folders:
+        if args.record_hashes:
+            for name, digest in record_file_hashes(folder).items():
+                print(f"{folder / name}: sha256 {digest}")
+        check_agent_folder(folder)
+        print(f"{folder}: checked")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -33,6 +33,7 @@ import os
 import signal
 import sys
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -44,7 +45,7 @@ from blf_gym.io import atomic_write_json, help_text
 from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, curriculum_scale,
                      parse_overrides, shipped_config)
 
-__all__ = ["main", "load_config", "train"]
+__all__ = ["TrainRequest", "load_config", "main", "run_training", "train"]
 
 MODES = tuple(ENV_IDS)
 
@@ -479,6 +480,67 @@ def _save_final(model, ckpt_dir: Path, out: Path, state: dict[str, Any]) -> None
         model.save(tmp)
 
 
+@dataclass(frozen=True)
+class TrainRequest:
+    """One training call as the caller states it (:func:`train`'s arguments; None: the resumed run's
+    own setting, else the config's, else the default)."""
+
+    algo: str | None = None
+    mode: str | None = None
+    controller: str | None = None
+    scenario: str | None = None
+    timesteps: int | None = None
+    seed: int | None = None
+    config: str | Path | None = None
+    out: Path = Path("runs/run")
+    resume: bool = False
+    progress: bool = True
+    name: str | None = None
+    command: str | None = None
+    observer: str | None = None
+    overrides: Mapping[str, Any] | Sequence[str] = ()
+    time_budget_s: float | None = None
+
+
+@dataclass
+class _Plan:
+    """The run once settled: the request checked against its folder, the config read."""
+
+    req: TrainRequest
+    out: Path
+    meta_path: Path
+    ckpt_dir: Path
+    prior: dict[str, Any] | None
+    run: RunSpec
+    cfg: dict[str, Any]
+    cfg_file: str
+    tc: TrainConfig
+    env_kwargs: dict[str, Any]
+    time_budget_s: float | None
+
+    @property
+    def timesteps(self) -> int:
+        return self.run.timesteps
+
+    @property
+    def seed(self) -> int:
+        return self.run.seeds[0]
+
+
+@dataclass
+class _Start:
+    """Where training starts: the model (new, warm-started or restored from a checkpoint), its step
+    count and wall time so far, and what its checkpoint stored."""
+
+    model: Any
+    steps: int = 0
+    model_wall: float = 0.0
+    with_buffer: bool = False
+    ck_state: dict[str, Any] = field(default_factory=dict)
+    spent_before: bool = False
+    warm: dict[str, Any] | None = None
+
+
 def train(
     algo: str | None = None,
     mode: str | None = None,
@@ -510,208 +572,264 @@ def train(
     ``resume=True`` the run's own settings (``metadata.json``) are used, ``timesteps`` defaults to
     the run's requested total, and a larger ``timesteps`` extends a finished run.
     """
-    out = Path(out)
-    if time_budget_s is not None and not (np.isfinite(time_budget_s) and time_budget_s > 0):
-        raise ValueError(f"--time-budget must be a number of seconds > 0, got {time_budget_s!r}")
+    return run_training(TrainRequest(algo, mode, controller, scenario, timesteps, seed, config, Path(out), resume,
+                                     progress, name, command, observer, overrides, time_budget_s))
+
+
+def run_training(req: TrainRequest) -> Path:
+    """:func:`train` over a :class:`TrainRequest`, in its named steps: settle the run, build the
+    envs, build or resume the model, record the run and make the callbacks, learn, save."""
+    plan = _plan(req)
+    cls = _learner(plan)
+    venv = _build_envs(plan)
+    start = _build_or_resume(plan, cls, venv)
+    if isinstance(start, Path):  # a resume with nothing to do
+        return start
+    session = _Session(plan, start, cls)
+    interrupted = _learn(plan, session, _callbacks(plan, session))
+    _save(plan, session, interrupted)
+    venv.close()
+    print(f"blf-train: wrote {plan.out / 'model.zip'} and {plan.meta_path} ({session.model.num_timesteps} steps)")
+    return plan.out
+
+
+def _plan(req: TrainRequest) -> _Plan:
+    """The request checked against the run folder (a new run, or one to resume) and its time budget,
+    and the run's spec and config settled (:func:`_settle`)."""
+    out, budget = Path(req.out), req.time_budget_s
+    if budget is not None and not (np.isfinite(budget) and budget > 0):
+        raise ValueError(f"--time-budget must be a number of seconds > 0, got {budget!r}")
     meta_path = out / "metadata.json"
     ckpt_dir = out / "checkpoints"
     prior = _read_metadata(meta_path) if meta_path.is_file() else None
-    if resume and prior is not None:
+    if req.resume and prior is not None:
         recorded = prior.get("time_budget_s")
-        if recorded is not None and time_budget_s is not None and time_budget_s < float(recorded):
-            raise ValueError(f"--time-budget {time_budget_s:g} is below the run's budget of {float(recorded):g} s "
+        if recorded is not None and budget is not None and budget < float(recorded):
+            raise ValueError(f"--time-budget {budget:g} is below the run's budget of {float(recorded):g} s "
                              f"({meta_path}); a resume keeps a run's budget or extends it")
-        if time_budget_s is None and recorded is not None:
-            time_budget_s = float(recorded)
-    if not resume and prior is not None:
+        if budget is None and recorded is not None:
+            budget = float(recorded)
+    if not req.resume and prior is not None:
         raise ValueError(f"{out} already holds a run; pass --resume to continue it (or --resume --timesteps N "
                          "to extend it), or choose another --out")
-    if resume and prior is None and not ckpt_dir.is_dir():
+    if req.resume and prior is None and not ckpt_dir.is_dir():
         raise ValueError(f"--resume: {out} holds no run to resume (no metadata.json, no checkpoints/)")
-    given = {"algo": algo, "mode": mode, "controller": controller, "scenario": scenario, "seed": seed,
-             "observer": observer, "name": name}
-    if not isinstance(overrides, Mapping):
-        overrides = parse_overrides(overrides)
-    run, cfg, cfg_file = _settle(given, timesteps, config, resume, prior, meta_path, overrides)
-    timesteps, seed = run.timesteps, run.seeds[0]
+    given = {"algo": req.algo, "mode": req.mode, "controller": req.controller, "scenario": req.scenario,
+             "seed": req.seed, "observer": req.observer, "name": req.name}
+    overrides = req.overrides if isinstance(req.overrides, Mapping) else parse_overrides(req.overrides)
+    run, cfg, cfg_file = _settle(given, req.timesteps, req.config, req.resume, prior, meta_path, overrides)
     tc = TrainConfig.of(cfg, _where(cfg_file))
-    env_kwargs = _env_kwargs(run, tc)
-    normalize = tc.normalize
+    return _Plan(req, out, meta_path, ckpt_dir, prior, run, cfg, cfg_file, tc, _env_kwargs(run, tc), budget)
 
+
+def _learner(plan: _Plan):
+    """The algorithm's class, with torch on one thread unless OMP_NUM_THREADS asks for more: the env
+    has its own, and two runs at once share the two cores (docs/budget.md measures both)."""
     import torch
-    from stable_baselines3.common.callbacks import CallbackList
-    from stable_baselines3.common.vec_env import VecMonitor
 
-    from .checkpoints import AtomicCheckpointCallback
     from .loading import algorithm_class
-    from .vec_env import BLFVecEnv
 
-    # one thread for the learner unless OMP_NUM_THREADS asks for more: the env has its own, and two
-    # runs at once share the two cores (docs/budget.md measures both)
     omp = os.environ.get("OMP_NUM_THREADS", "")
     torch.set_num_threads(int(omp) if omp.isdigit() and int(omp) >= 1 else 1)
-    cls = algorithm_class(run.algo)
-    n_envs = tc.n_envs
-    start_env: dict[str, Any] = {}
+    return algorithm_class(plan.run.algo)
+
+
+def _build_envs(plan: _Plan):
+    """The training envs: ``n_envs`` arms in one native vector env, monitored; a curriculum's first
+    episodes at its width (of the run's last recorded step on a resume)."""
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from .vec_env import BLFVecEnv
+
+    tc, start_env = plan.tc, {}
     if tc.curriculum:
         if "bound_scale" in tc.env:
-            raise ValueError(f"{_where(cfg_file)}: env.bound_scale and curriculum both set the funnel's width; "
-                             "keep one")
-        # the first episodes at the curriculum's width (of the run's last recorded step on a resume)
-        start_env["bound_scale"] = curriculum_scale(tc.curriculum, int((prior or {}).get("timesteps", 0))
-                                                    if resume else 0)
-    venv = VecMonitor(BLFVecEnv(n_envs, seed=seed, threads=1, **{"controller": None, **env_kwargs, **start_env}))
-    model, start_steps, prior_model_wall, with_buffer, ck_state = None, 0, 0.0, False, {}
-    spent_before = False
-    if resume:
-        model, start_steps, prior_model_wall, with_buffer, ck_state = _restore(cls, venv, ckpt_dir, normalize, out)
+            raise ValueError(f"{_where(plan.cfg_file)}: env.bound_scale and curriculum both set the funnel's "
+                             "width; keep one")
+        at = int((plan.prior or {}).get("timesteps", 0)) if plan.req.resume else 0
+        start_env["bound_scale"] = curriculum_scale(tc.curriculum, at)
+    return VecMonitor(BLFVecEnv(tc.n_envs, seed=plan.seed, threads=1,
+                                **{"controller": None, **plan.env_kwargs, **start_env}))
+
+
+def _build_or_resume(plan: _Plan, cls, venv) -> _Start | Path:
+    """The model to train: restored from the run's last complete checkpoint on a resume, else new
+    (warm-started when the config says ``init_from``). A resume with nothing left to train returns
+    the run folder instead."""
+    out, prior, budget = plan.out, plan.prior, plan.time_budget_s
+    start = _Start(None)
+    if plan.req.resume:
+        model, steps, wall, with_buffer, ck_state = _restore(cls, venv, plan.ckpt_dir, plan.tc.normalize, out)
+        start = _Start(model, steps, wall, with_buffer, ck_state)
         if model is None:
             if prior is None:
-                raise ValueError(f"--resume: no complete checkpoint in {ckpt_dir}")
-            print(f"blf-train: no complete checkpoint in {ckpt_dir}; starting {out} again from step 0",
+                raise ValueError(f"--resume: no complete checkpoint in {plan.ckpt_dir}")
+            print(f"blf-train: no complete checkpoint in {plan.ckpt_dir}; starting {out} again from step 0",
                   file=sys.stderr)
         else:
-            if prior is not None and int(prior.get("timesteps", -1)) == start_steps:
+            if prior is not None and int(prior.get("timesteps", -1)) == steps:
                 # a checkpoint keeps the wall time of its writing (a later save at the same step leaves
                 # it as it is); the metadata, recorded last, also counts what followed at that step
                 # (a curve point, the final save)
-                prior_model_wall = max(prior_model_wall, float(prior.get("wall_s_to_model", 0.0)))
+                start.model_wall = max(wall, float(prior.get("wall_s_to_model", 0.0)))
             finished = bool(prior is not None and prior.get("completed") and (out / "model.zip").is_file())
-            if finished and start_steps >= timesteps:
-                return _nothing_to_do(venv, out, f"already has {start_steps} steps (requested {timesteps}); nothing "
-                                      f"to do. Pass --resume --timesteps N with N > {start_steps} to extend it.")
-            if time_budget_s is not None and prior_model_wall >= time_budget_s:
+            if finished and steps >= plan.timesteps:
+                return _nothing_to_do(venv, out, f"already has {steps} steps (requested {plan.timesteps}); nothing "
+                                      f"to do. Pass --resume --timesteps N with N > {steps} to extend it.")
+            if budget is not None and start.model_wall >= budget:
                 if finished:
-                    return _nothing_to_do(venv, out, f"has spent its time budget ({prior_model_wall:.0f} s of "
-                                          f"{time_budget_s:g} s, {start_steps} steps); nothing to do. Pass --resume "
+                    return _nothing_to_do(venv, out, f"has spent its time budget ({start.model_wall:.0f} s of "
+                                          f"{budget:g} s, {steps} steps); nothing to do. Pass --resume "
                                           "--time-budget S with a larger S to extend it.")
                 # its last job ended (a kill, a restore elsewhere) before it recorded the run as finished
-                print(f"blf-train: {out} had spent its time budget ({prior_model_wall:.0f} s of {time_budget_s:g} s) "
-                      f"at its checkpoint of {start_steps} steps; training nothing, writing its final model",
+                print(f"blf-train: {out} had spent its time budget ({start.model_wall:.0f} s of {budget:g} s) "
+                      f"at its checkpoint of {steps} steps; training nothing, writing its final model",
                       file=sys.stderr)
-                spent_before = True
-    warm = (prior or {}).get("init_from") if resume else None
-    if model is None:
+                start.spent_before = True
+    start.warm = (prior or {}).get("init_from") if plan.req.resume else None
+    if start.model is None:
         try:
-            model = _new_model(cls, run, tc, cfg_file, venv, out)
-            if tc.init_from:
-                warm = _warm_start(model, run, tc.init_from, _where(cfg_file))
+            start.model = _new_model(cls, plan.run, plan.tc, plan.cfg_file, venv, out)
+            if plan.tc.init_from:
+                start.warm = _warm_start(start.model, plan.run, plan.tc.init_from, _where(plan.cfg_file))
         except BaseException:
             venv.close()  # its worker threads would outlive a refused run in a long-lived process
             raise
-    continuing = start_steps > 0
-    out.mkdir(parents=True, exist_ok=True)
-    clock = _RunClock(prior_model_wall)
+    return start
 
-    # metadata.json is written now and after every checkpoint and curve point, so a killed run keeps
-    # its record; each process's stretch of training is one segment
-    segments, segment = _segments(prior, resume, start_steps, command)
-    from blf_gym.metrics import provenance
 
-    prov = provenance()
-    meta: dict[str, Any] = {
-        "name": name or (prior or {}).get("name") or out.name,
-        "algo": run.algo,
-        "mode": run.mode,
-        "env_id": ENV_IDS[run.mode],
-        "env_kwargs": dict(env_kwargs),
-        "config_file": cfg_file,
-        "config": _stated(cfg),
-        "seed": seed,
-        "timesteps": start_steps,
-        "timesteps_requested": timesteps,
-        "time_budget_s": time_budget_s,
-        "status": "running",
-        "completed": False,
-        "resumed": len(segments) > 1,
-        "wall_s": 0.0,
-        "wall_s_to_model": prior_model_wall,
-        "segments": segments,
-        "versions": prov["versions"],
-        "git_commit": prov["git_commit"],
-        "command": (prior or {}).get("command") if resume else command,
-        "host": {"cpus": os.cpu_count()},
-    }
-    if warm:
-        meta["init_from"] = warm
+class _Session:
+    """One process's stretch of a run (a segment): its model, clock and metadata record, written now
+    and after every checkpoint and curve point so that a killed run keeps its record; and, for an
+    off-policy learner resumed without a full replay buffer, the refill that fills it first."""
 
-    def record(status: str = "running") -> None:
-        segment["end_timesteps"] = int(model.num_timesteps)
-        segment["wall_s"] = round(clock.segment(), 3)
-        segment["status"] = status
-        meta["timesteps"] = int(model.num_timesteps)
-        meta["wall_s"] = round(sum(float(s.get("wall_s", 0.0)) for s in segments), 3)
-        meta["wall_s_to_model"] = round(clock.model(), 3)
+    def __init__(self, plan: _Plan, start: _Start, cls) -> None:
+        from blf_gym.metrics import provenance
+
+        self.model, self.start = start.model, start
+        self.continuing = start.steps > 0
+        plan.out.mkdir(parents=True, exist_ok=True)
+        self.clock = _RunClock(start.model_wall)
+        self.segments, self.segment = _segments(plan.prior, plan.req.resume, start.steps, plan.req.command)
+        self.meta_path = plan.meta_path
+        prior, req = plan.prior or {}, plan.req
+        prov = provenance()
+        self.meta: dict[str, Any] = {
+            "name": req.name or prior.get("name") or plan.out.name, "algo": plan.run.algo, "mode": plan.run.mode,
+            "env_id": ENV_IDS[plan.run.mode], "env_kwargs": dict(plan.env_kwargs), "config_file": plan.cfg_file,
+            "config": _stated(plan.cfg), "seed": plan.seed, "timesteps": start.steps,
+            "timesteps_requested": plan.timesteps, "time_budget_s": plan.time_budget_s, "status": "running",
+            "completed": False, "resumed": len(self.segments) > 1, "wall_s": 0.0, "wall_s_to_model": start.model_wall,
+            "segments": self.segments, "versions": prov["versions"], "git_commit": prov["git_commit"],
+            "command": prior.get("command") if req.resume else req.command, "host": {"cpus": os.cpu_count()},
+        }
+        if start.warm:
+            self.meta["init_from"] = start.warm
+        self.refill, self.gradient_steps, self.until = None, None, 0
+        model = self.model
+        if self.continuing and hasattr(model, "replay_buffer"):
+            # from the config, not the checkpoint: a checkpoint written during a refill holds 0
+            self.gradient_steps = int(_configured(cls, plan.tc, "gradient_steps"))
+            model.gradient_steps = self.gradient_steps
+            if not start.with_buffer:  # e.g. a checkpoint kept without it (docs/budget/keep.sh)
+                self.until = start.steps + max(int(_configured(cls, plan.tc, "learning_starts")),
+                                               int(model.batch_size))
+            # a checkpoint written during a refill holds a part-filled buffer: the refill goes on
+            self.until = max(self.until, int(start.ck_state.get("refill_until", 0)))
+            if self.until > start.steps:
+                print(f"blf-train: {plan.out}'s checkpoint has {'a part-refilled' if start.with_buffer else 'no'} "
+                      f"replay buffer; the policy fills it without updates until step {self.until}", file=sys.stderr)
+                self.segment["replay_buffer"] = {"resumed": start.with_buffer, "refilled_until": self.until}
+                self.refill = _make_refill_callback(model, self.until, self.gradient_steps)
+        self.record()
+
+    def record(self, status: str = "running") -> None:
+        """Write the run's metadata with this segment's progress (atomically)."""
+        self.segment["end_timesteps"] = int(self.model.num_timesteps)
+        self.segment["wall_s"] = round(self.clock.segment(), 3)
+        self.segment["status"] = status
+        meta = self.meta
+        meta["timesteps"] = int(self.model.num_timesteps)
+        meta["wall_s"] = round(sum(float(s.get("wall_s", 0.0)) for s in self.segments), 3)
+        meta["wall_s_to_model"] = round(self.clock.model(), 3)
         meta["status"] = status
         meta["completed"] = status == "completed"
-        atomic_write_json(meta_path, meta)
+        atomic_write_json(self.meta_path, meta)
 
-    refill, gradient_steps, until = None, None, 0
-    if continuing and hasattr(model, "replay_buffer"):
-        # from the config, not the checkpoint: a checkpoint written during a refill holds 0
-        gradient_steps = int(_configured(cls, tc, "gradient_steps"))
-        model.gradient_steps = gradient_steps
-        if not with_buffer:  # e.g. a checkpoint kept without it (docs/budget/keep.sh)
-            until = start_steps + max(int(_configured(cls, tc, "learning_starts")), int(model.batch_size))
-        # a checkpoint written during a refill holds a part-filled buffer: the refill goes on
-        until = max(until, int(ck_state.get("refill_until", 0)))
-        if until > start_steps:
-            print(f"blf-train: {out}'s checkpoint has {'a part-refilled' if with_buffer else 'no'} replay buffer; "
-                  f"the policy fills it without updates until step {until}", file=sys.stderr)
-            segment["replay_buffer"] = {"resumed": with_buffer, "refilled_until": until}
-            refill = _make_refill_callback(model, until, gradient_steps)
-
-    def ck_state() -> dict[str, Any]:
+    def ck_state(self) -> dict[str, Any]:
         """What a checkpoint stores beside its files: the training wall time so far, and the step
         an unfinished refill runs to."""
-        extra = {"refill_until": until} if refill is not None and model.num_timesteps < until else {}
-        return {"wall_s_to_model": round(clock.model(), 3), **extra}
+        extra = {"refill_until": self.until} if self.refill is not None and self.model.num_timesteps < self.until \
+            else {}
+        return {"wall_s_to_model": round(self.clock.model(), 3), **extra}
 
-    record()
-    freq = max(1, tc.checkpoint_freq // n_envs)
+
+def _callbacks(plan: _Plan, session: _Session) -> list[Any]:
+    """SB3 callbacks: atomic checkpoints, the learning curve, the progress bar, and as configured the
+    curriculum, the replay buffer's refill and the time budget."""
+    from .checkpoints import AtomicCheckpointCallback
+
+    tc, run = plan.tc, plan.run
+    freq = max(1, tc.checkpoint_freq // tc.n_envs)
     callbacks = [
-        AtomicCheckpointCallback(freq, str(ckpt_dir), state=ck_state,
-                                 on_saved=lambda _folder: record(), name_prefix="model",
-                                 save_replay_buffer=True, save_vecnormalize=normalize),
-        _make_curve_callback(tc.eval_freq, out, env_kwargs,
-                             {"name": meta["name"], "mode": run.mode, "env_kwargs": env_kwargs},
-                             tc.curve_suite_seeds, clock, on_point=record),
-        _make_progress_callback(timesteps, start_steps, progress),
+        AtomicCheckpointCallback(freq, str(plan.ckpt_dir), state=session.ck_state,
+                                 on_saved=lambda _folder: session.record(), name_prefix="model",
+                                 save_replay_buffer=True, save_vecnormalize=tc.normalize),
+        _make_curve_callback(tc.eval_freq, plan.out, plan.env_kwargs,
+                             {"name": session.meta["name"], "mode": run.mode, "env_kwargs": plan.env_kwargs},
+                             tc.curve_suite_seeds, session.clock, on_point=session.record),
+        _make_progress_callback(plan.timesteps, session.start.steps, plan.req.progress),
     ]
     if tc.curriculum:
         callbacks.append(_make_curriculum_callback(tc.curriculum))
-    if refill is not None:
-        callbacks.append(refill)
-    if time_budget_s is not None:
-        callbacks.append(_make_time_budget_callback(clock, time_budget_s))
-    remaining = 0 if spent_before else max(0, timesteps - start_steps)
-    interrupted = False
+    if session.refill is not None:
+        callbacks.append(session.refill)
+    if plan.time_budget_s is not None:
+        callbacks.append(_make_time_budget_callback(session.clock, plan.time_budget_s))
+    return callbacks
+
+
+def _learn(plan: _Plan, session: _Session, callbacks: list[Any]) -> bool:
+    """SB3's ``learn`` for the steps left; True if a KeyboardInterrupt cut it short."""
+    from stable_baselines3.common.callbacks import CallbackList
+
+    model = session.model
+    remaining = 0 if session.start.spent_before else max(0, plan.timesteps - session.start.steps)
     try:
-        if not spent_before:
-            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not continuing,
-                        tb_log_name=run.algo)
+        if not session.start.spent_before:
+            model.learn(remaining, callback=CallbackList(callbacks), reset_num_timesteps=not session.continuing,
+                        tb_log_name=plan.run.algo)
     except KeyboardInterrupt:
-        interrupted = True
         print(f"\nblf-train: interrupted at {model.num_timesteps} steps; resume with --resume "
-              f"--out {out}", file=sys.stderr)
+              f"--out {plan.out}", file=sys.stderr)
+        return True
+    return False
+
+
+def _save(plan: _Plan, session: _Session, interrupted: bool) -> None:
+    """The final checkpoint, model and statistics, their sha256 in the metadata, and the run's
+    status. A SIGTERM now (a scheduler's at the budget, a second one, a dying parent's) must not cut
+    the final save short: it is ignored until the run is recorded."""
     import threading
 
+    from .loading import file_hashes
+
+    model = session.model
     main_thread = threading.current_thread() is threading.main_thread()
-    # a SIGTERM now (a scheduler's at the budget, a second one, a dying parent's) must not cut the
-    # final save short: it is ignored until the run is recorded
     previous = signal.signal(signal.SIGTERM, signal.SIG_IGN) if main_thread else None
-    if gradient_steps is not None:  # a refill cut short must not be saved as the run's setting
-        model.gradient_steps = gradient_steps
+    if session.gradient_steps is not None:  # a refill cut short must not be saved as the run's setting
+        model.gradient_steps = session.gradient_steps
     try:
-        _save_final(model, ckpt_dir, out, ck_state())
-        spent = time_budget_s is not None and clock.model() >= time_budget_s
-        record("completed" if (not interrupted and (model.num_timesteps >= timesteps or spent)) else "interrupted")
+        print(f"blf-train: saving {plan.out} (checkpoint, model, statistics)", file=sys.stderr, flush=True)
+        _save_final(model, plan.ckpt_dir, plan.out, session.ck_state())
+        session.meta["files"] = file_hashes(plan.out)  # what the loader checks the folder against (agents.loading)
+        budget = plan.time_budget_s
+        spent = budget is not None and session.clock.model() >= budget
+        done = not interrupted and (model.num_timesteps >= plan.timesteps or spent)
+        session.record("completed" if done else "interrupted")
     finally:
         if main_thread:
             signal.signal(signal.SIGTERM, previous)
-    venv.close()
-    print(f"blf-train: wrote {out / 'model.zip'} and {out / 'metadata.json'} ({model.num_timesteps} steps)")
-    return out
 
 
 def _parser() -> argparse.ArgumentParser:

@@ -84,6 +84,9 @@ def convert(run: str | Path, out: str | Path, best: bool = False, name: str | No
             "algo": args.get("algo"), "mode": mode, "env_id": ENV_IDS[mode], "env_kwargs": env_kwargs,
             "seed": args.get("seed"), "config": {"normalize": normalize}, "source": "rl-zoo3",
             "zoo_run": str(run.resolve()), "zoo_model": model.name}
+    from .loading import file_hashes
+
+    meta["files"] = file_hashes(out)
     atomic_write_text(out / "metadata.json", json.dumps(meta, indent=1, default=str))
     from .loading import check_agent_folder
 

@@ -69,6 +69,7 @@ from blf_gym.observation import (
     observation_index,
     unsquash,
 )
+from blf_gym import sources
 from blf_gym.io import cache_dir
 from blf_gym.params import ArmParams, FrictionParams
 
@@ -286,7 +287,7 @@ class NMPC:
 
     def _key(self, compiled: bool) -> str:
         ca = _casadi()
-        src = Path(__file__).read_bytes()
+        src = sources.digest(__name__).encode()  # this module's import closure, not only its file
         text = repr((asdict(self.params), self.u_max, compiled, ca.__version__)).encode()
         return hashlib.sha256(src + text).hexdigest()[:20]
 

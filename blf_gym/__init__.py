@@ -9,7 +9,7 @@ Modules: :mod:`~blf_gym.params` (parameters and presets), :mod:`~blf_gym.dynamic
 :mod:`~blf_gym.uncertainty`, :mod:`~blf_gym.reference`, :mod:`~blf_gym.bounds`,
 :mod:`~blf_gym.registry` (controllers and observers by name), :mod:`~blf_gym.simulate` (the compiled closed
 loop), :mod:`~blf_gym.metrics`, :mod:`~blf_gym.scenarios`, :mod:`~blf_gym.env`,
-:mod:`~blf_gym.vector`, :mod:`~blf_gym.safety` (:class:`SafetyGymnasiumWrapper`, Safety-Gymnasium's
+:mod:`~blf_gym.vector`, :mod:`~blf_gym.sources` (the import closures that key every compiled cache), :mod:`~blf_gym.safety` (:class:`SafetyGymnasiumWrapper`, Safety-Gymnasium's
 six-value ``step`` with the cost).
 """
 

@@ -69,11 +69,11 @@ import re
 import sys
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable, Mapping
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
 from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
                        mass_matrix_into)
@@ -656,16 +656,19 @@ def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Obs
     return f"    return {fn_name}({args})\n"
 
 
-def _source_of(fn: Any) -> bytes:
-    py = getattr(fn, "py_func", fn)
-    mod = sys.modules.get(py.__module__)
-    f = getattr(mod, "__file__", None)
-    if f and os.path.isfile(f):
-        return Path(f).read_bytes()
-    try:
-        return inspect.getsource(py).encode()
-    except (OSError, TypeError):
-        return py.__code__.co_code
+def glue_digest(src: str, functions: Sequence[Any], path: tuple[str, ...] | None = None) -> str:
+    """The 12-hex-digit digest in a glue module's name: the generated source, each plug-in function's
+    name and the import closure of the module that defines it (:func:`blf_gym.sources.function_digest`:
+    what it calls in other files, such as the CBF filter's use of ``baselines.filters``, included),
+    and this module's closure. ``path``: resolve the modules in a copy on disk (the tests)."""
+    h = hashlib.sha1(src.encode())
+    for fn in functions:
+        if fn is not None:
+            py = getattr(fn, "py_func", fn)
+            h.update(f"{py.__module__}.{py.__qualname__}".encode())
+            h.update(sources.function_digest(fn, path).encode())
+    h.update(sources.digest(__name__, path=path).encode())
+    return h.hexdigest()[:12]
 
 
 def parse_filter_spec(spec: Any) -> tuple[str, dict[str, float]]:
@@ -736,14 +739,7 @@ def connect(controller: Controller, observer: Observer, n: int,
     src += f"\ndef ctrl_update({_GLUE_ARGS}):\n"
     src += (_call("ctrl_upd", "_c_update", c._upd_params, c, o, f, n, f"{c.owner}.update") if c.update
             else "    pass\n")
-    h = hashlib.sha1(src.encode())
-    for fn in (c.output, c.update, o.rhs, f.apply if f else None):
-        if fn is not None:
-            py = getattr(fn, "py_func", fn)
-            h.update(f"{py.__module__}.{py.__qualname__}".encode())
-            h.update(_source_of(fn))
-    h.update(Path(__file__).read_bytes())
-    digest = h.hexdigest()[:12]
+    digest = glue_digest(src, (c.output, c.update, o.rhs, f.apply if f else None))
     fname = "" if f is None else f"__{f.name}"
     module = _load_glue(src, f"{c.name}__{o.name}{fname}__n{n}__{digest}", {
         "_c_output": _compiled(c.output), "_o_rhs": _compiled(o.rhs),

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
 from . import vmath
 

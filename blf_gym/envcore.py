@@ -10,13 +10,14 @@ from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
 from .bounds import BOUND_LEN, KA, KB
 from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .registry import available_controllers, available_observers, make_controller, make_observer
 from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
                      STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
-from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real
+from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, usable_cores
 from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
@@ -100,7 +101,8 @@ ARGUMENTS: tuple[Argument, ...] = (
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
              "a training curriculum's factor on the funnel's width; the benchmark is 1. Also settable between "
              "episodes as env.unwrapped.bound_scale"),
-    Argument("threads", "-", ">= 1 or None (1 for the single env, half the cores for the vector env)",
+    Argument("threads", "-", "1 to the cores the process may use (blf_gym.params.usable_cores), or None (1 for "
+             "the single env, half the cores for the vector env)",
              "numba threads the arms are split over"),
     Argument("record", "-", "True or False", "keep the episode's 1 ms signals for env.unwrapped.trajectory()"),
     Argument("record_channels", "-", "names of blf_gym.simulate.CHANNELS, or None (all)",
@@ -202,11 +204,10 @@ def warn_if_oversubscribed(env_threads: int, owner: str) -> None:
     cores, say so, with the fix. Torch's default (one thread per core) beside the env slowed SB3's
     PPO through ``gym.make`` from about 1,300-1,600 to 40-280 steps/s on a loaded 2-core machine
     (docs/conventions.md, "Threads")."""
-    import os
     import sys
 
     torch = sys.modules.get("torch")
-    cpus = os.cpu_count() or 1
+    cpus = usable_cores()
     if _WARNED or torch is None or not hasattr(torch, "get_num_threads"):
         return
     t = int(torch.get_num_threads())
@@ -356,15 +357,18 @@ class _Record:
 def _record_channels(o: str, record_channels: Any) -> tuple[str, ...]:
     """The channels a recording env keeps (None: all of :data:`CHANNELS`), 't' always among them;
     ValueError naming the argument otherwise."""
+    from collections.abc import Sequence
+
     if record_channels is None:
         return CHANNELS
-    try:
-        names = (record_channels,) if isinstance(record_channels, str) else tuple(record_channels)
-    except TypeError:  # not a name nor a sequence of names
-        names = (record_channels,)
-    if len(set(map(repr, names))) != len(names) or any(not isinstance(c, str) or c not in CHANNELS for c in names):
-        raise ValueError(f"{o} record_channels must be distinct names among {list(CHANNELS)} (default "
-                         f"all; 't' is always kept), got {record_channels!r}")
+    # a list or tuple of names: a string is one name spelled as a sequence of letters, and a set or a
+    # dict has no order the trajectory's channels could follow
+    names = tuple(record_channels) if (isinstance(record_channels, Sequence)
+                                       and not isinstance(record_channels, (str, bytes))) else None
+    if (names is None or len(set(map(repr, names))) != len(names)
+            or any(not isinstance(c, str) or c not in CHANNELS for c in names)):
+        raise ValueError(f"{o} record_channels must be a list or tuple of distinct names among "
+                         f"{list(CHANNELS)}, or None (all; 't' is always kept), got {record_channels!r:.80}")
     return names if "t" in names else ("t", *names)
 
 
@@ -462,7 +466,8 @@ class EnvCore:
         max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
         dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
                         hint=" dividing the 0.001 s sample period (e.g. 1e-4, 5e-5)")
-        threads = check_int(o, "threads", threads, lo=1, none_ok=True)
+        threads = check_int(o, "threads", threads, lo=1, hi=usable_cores(), none_ok=True,
+                            hint=" (the cores this process may use: more threads than cores only wait)")
         self.bound_scale = bound_scale  # checked by the property's setter
         self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
         self._set_period(control_period)

@@ -14,6 +14,7 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
 from .bounds import BOUND_SIGNALS, KA, KB, bounds_into
 from .params import REFERENCE_PACK

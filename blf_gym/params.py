@@ -142,6 +142,17 @@ def check_real(owner: str, name: str, value: Any, lo: float | None = None, hi: f
     return v
 
 
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one, else
+    ``os.cpu_count()``): the most numba threads an env or a batch accepts."""
+    import os
+
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):  # macOS and Windows have no affinity call
+        return max(1, os.cpu_count() or 1)
+
+
 def check_int(owner: str, name: str, value: Any, lo: int | None = None, hi: int | None = None, *,
               none_ok: bool = False, hint: str = "") -> Any:
     """``value`` as an int if it is an integer (int or numpy integer, not a bool or a float) in

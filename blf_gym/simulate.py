@@ -32,6 +32,7 @@ from typing import Sequence
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.core import cgutils
 from numba.core.imputils import impl_ret_borrowed
@@ -54,7 +55,7 @@ from .dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, plant_length
+from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, check_int, plant_length, usable_cores
 from .reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
 from .views import fixed
 from .status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
@@ -831,26 +832,14 @@ inlined into it."""
 # specialisation: clone the templates with the law and observer bound, compile with a disk cache
 
 
-_KERNEL_MODULES = ("blocks", "bounds", "dynamics", "reference", "reward", "simulate", "status", "uncertainty",
-                   "views")
-
-
-def _source_digest(*modules: types.ModuleType) -> str:
-    """Hash of the source files the compiled kernel depends on.
-
-    numba's cache only watches the file that defines a function, not the files of the functions
-    it calls; folding every dependency's source into the kernel's name makes an edit to any of
-    them invalidate the cached kernel (and only those: editing the env does not recompile).
-    """
-    h = hashlib.sha1()
-    pkg = Path(__file__).parent
-    for name in _KERNEL_MODULES:
-        h.update((pkg / f"{name}.py").read_bytes())
-    for m in modules:
-        f = getattr(m, "__file__", None)
-        if f:
-            h.update(Path(f).read_bytes())
-    return h.hexdigest()[:10]
+def kernel_digest(conn: Connection) -> str:
+    """The 10-hex-digit digest in a kernel's name: the sources of this module's import closure
+    (:func:`blf_gym.sources.digest`: the templates, every block they inline, every packed layout's
+    declaration, found by following the imports, not from a list) and the connection's own digest
+    (the plug-ins' closures and the generated glue, :func:`blf_gym.blocks.connect`). An edit to any
+    of those files, a comment included, builds a new kernel; an edit to a module the kernel does not
+    import (the env, agents/, docs/) does not."""
+    return hashlib.sha1((sources.digest(__name__) + conn.digest).encode()).hexdigest()[:10]
 
 
 def _cache_dir(dispatcher) -> Path:
@@ -860,8 +849,14 @@ def _cache_dir(dispatcher) -> Path:
 
 
 def _is_cached(dispatcher) -> bool:
-    """True if machine code for this dispatcher is in memory or in numba's disk cache."""
-    return bool(dispatcher.signatures) or Path(dispatcher._cache._cache_file._index_path).is_file()
+    """True if machine code for this dispatcher is in memory or in numba's disk cache under its
+    current source stamp (an index written for other sources is stale: numba would recompile)."""
+    if dispatcher.signatures:
+        return True
+    try:
+        return bool(dispatcher._cache._cache_file._load_index())
+    except Exception:  # noqa: BLE001 (an unreadable index is a miss: numba rebuilds it)
+        return False
 
 
 def remove_stale_cache(cache: Path, prefix: str, digest: str) -> list[Path]:
@@ -963,7 +958,7 @@ def _specialise(conn: Connection, lanes: int = LANES):
     key = (conn, lanes)
     if key not in _KERNELS:
         n = conn.n
-        digest = hashlib.sha1((_source_digest() + conn.digest).encode()).hexdigest()[:10]
+        digest = kernel_digest(conn)
         pair = f"{conn.controller.name}__{conn.observer.name}"
         if conn.filter is not None:
             pair += f"__{conn.filter.name}"
@@ -1150,11 +1145,11 @@ class ClosedLoop:
         if len(sps) != 1:
             raise ValueError("all scenarios of a ClosedLoop must share SimParams.sample_period")
         self.steps_per_sample = sps.pop()
+        cores = usable_cores()
         if threads is None:
-            threads = min(len(scenarios), os.cpu_count() or 1)
-        if threads < 1:
-            raise ValueError(f"threads must be >= 1, got {threads}")
-        self.threads = int(threads)
+            threads = min(len(scenarios), cores)
+        self.threads = check_int("ClosedLoop", "threads", threads, lo=1, hi=cores,
+                                 hint=" (the cores this process may use: more threads than cores only wait)")
         self._pool = None
         self._helpers = 0  # threads beside the caller's that step blocks of this batch
         n = self.n

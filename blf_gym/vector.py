@@ -17,7 +17,6 @@ in Gymnasium's own sync and async vector envs, so its vector wrappers accept it)
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
 import numpy as np
@@ -44,7 +43,9 @@ def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
 def default_threads(num_envs: int) -> int:
     """The vector env's default numba threads: half the cores (at least 1, at most one per arm),
     so that the learner beside it (torch, which takes every core by default) keeps the rest."""
-    return max(1, min(num_envs, (os.cpu_count() or 1) // 2))
+    from .params import usable_cores
+
+    return max(1, min(num_envs, usable_cores() // 2))
 
 
 class PlanarBLFVectorEnv(VectorEnv):

@@ -8,6 +8,7 @@ per-joint loop has a compile-time length.
 from __future__ import annotations
 
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.core import cgutils
 from numba.core.imputils import impl_ret_borrowed

@@ -30,6 +30,7 @@ import math
 
 import numpy as np
 from numba import njit
+from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.extending import intrinsic
 

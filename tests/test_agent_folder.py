@@ -5,8 +5,10 @@ is one ValueError of one line naming the file and the field, and blf-eval says i
 
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
+import warnings
 import shutil
 from pathlib import Path
 from typing import Callable
@@ -204,9 +206,69 @@ def test_blf_train_states_normalize_even_when_the_config_leaves_it_out(tmp_path)
                        "--no-progress"]) == 0
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["config"]["normalize"] is False and not (out / "vecnormalize.pkl").exists()
+    # the folder records the sha256 of what it saved, computed here with hashlib on the bytes on disk
+    assert meta["files"] == {"model.zip": hashlib.sha256((out / "model.zip").read_bytes()).hexdigest()}
     _, _, norm = load_agent(out)
     assert norm is None
     # the stated default is not a difference from the same YAML on --resume
     assert train_main(["--algo", "ppo", "--timesteps", "128", "--config", str(cfg), "--out", str(out),
                        "--resume", "--no-progress"]) == 0
     assert json.loads((out / "metadata.json").read_text())["timesteps"] >= 128
+
+
+def _swap_stats(folder: Path, other: str = "ppo_lagrangian") -> None:
+    """Another shipped agent's statistics, of the same observation size: every structural check passes."""
+    shutil.copy(PRETRAINED / other / "vecnormalize.pkl", folder / "vecnormalize.pkl")
+
+
+def test_a_swapped_statistics_file_is_refused_by_name_unless_accepted(tmp_path):
+    folder = _copy(tmp_path, "ppo_residual_certified")
+    _swap_stats(folder)
+    with pytest.raises(ValueError) as info:
+        load_agent(folder)
+    msg = str(info.value)
+    assert "\n" not in msg and msg.startswith(f"{folder / 'vecnormalize.pkl'}: sha256 "), msg
+    assert "accept_changed_files=True" in msg and "--accept-changed-files" in msg
+    model, meta, norm = load_agent(folder, accept_changed_files=True)
+    with open(PRETRAINED / "ppo_lagrangian" / "vecnormalize.pkl", "rb") as f:
+        np.testing.assert_array_equal(norm.obs_rms.mean, pickle.load(f).obs_rms.mean)  # the swapped one, as asked
+
+
+@pytest.mark.parametrize("damage,word", [
+    (lambda f: (f / "vecnormalize.pkl").write_bytes((f / "vecnormalize.pkl").read_bytes() + b"\0"), "sha256"),
+    (_meta(lambda m: m["files"].pop("vecnormalize.pkl")), "do not list it"),
+    (_meta(lambda m: m["files"].__setitem__("model.zip", "0" * 64)), "sha256"),
+])
+def test_a_file_that_is_not_the_saved_one_or_not_listed_is_refused(tmp_path, damage, word):
+    folder = _copy(tmp_path, "ppo_residual")
+    damage(folder)
+    with pytest.raises(ValueError, match=word):
+        load_agent(folder)
+
+
+def test_a_folder_without_hashes_loads_with_one_warning_and_can_record_them(tmp_path):
+    from agents.loading import main as loading_main
+
+    folder = _copy(tmp_path, "ppo_residual")
+    _meta(lambda m: m.pop("files"))(folder)
+    with pytest.warns(UserWarning, match="no 'files' field") as record:
+        load_agent(folder)
+    assert len(record) == 1 and "\n" not in str(record[0].message)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_agent(folder)  # once per folder and process
+    assert loading_main(["--record-hashes", str(folder)]) == 0
+    assert json.loads((folder / "metadata.json").read_text())["files"] == \
+        json.loads((PRETRAINED / "ppo_residual" / "metadata.json").read_text())["files"]
+
+
+def test_blf_eval_refuses_a_swapped_file_and_scores_it_when_told(tmp_path, capsys):
+    folder = _copy(tmp_path, "ppo_residual")
+    _swap_stats(folder)
+    args = ["--agents", str(folder), "--controllers", "--scenarios", "paper-0.1hz", "--suite-seeds", "0",
+            "--duration", "0.5", "--no-progress"]
+    capsys.readouterr()
+    assert eval_main(args) == 2
+    err = capsys.readouterr().err
+    assert f"blf-eval: error: {folder / 'vecnormalize.pkl'}: sha256" in err and "Traceback" not in err
+    assert eval_main(args + ["--accept-changed-files"]) == 0

@@ -28,7 +28,7 @@ import blf_gym  # noqa: F401  (registers the ids)
 from blf_gym.registry import available_controllers
 from blf_gym.envcore import RewardWeights
 from blf_gym.env import PlanarBLFEnv
-from blf_gym.params import DT_MIN, SimParams
+from blf_gym.params import DT_MIN, SimParams, usable_cores
 from blf_gym.scenarios import SAFE_RANGES, VARIATIONS
 from blf_gym.simulate import CHANNELS
 from blf_gym.vector import PlanarBLFVectorEnv
@@ -284,7 +284,9 @@ BAD_KWARGS = {
     "record_channels": st.tuples(
         STRINGS.filter(lambda s: s not in CHANNELS) | st.integers() | st.floats() | BOOLS
         | st.lists(STRINGS.filter(lambda s: s not in CHANNELS), min_size=1, max_size=2)
-        | st.just(["e1", "e1"]) | st.lists(st.integers(), min_size=1, max_size=2),
+        | st.just(["e1", "e1"]) | st.lists(st.integers(), min_size=1, max_size=2)
+        # a set or a dict has no order for the channels; a channel's own name is one name, not a list
+        | st.sampled_from([{"u"}, {"u": 1}, "u", b"u", frozenset({"t"})]),
         st.just("record_channels")),
     "angle_noise_std": st.tuples(
         bad_real(0.0, False, extra=st.floats(min_value=2e-4, exclude_min=True, allow_nan=False)),
@@ -306,7 +308,8 @@ BAD_KWARGS = {
     "residual_filter": st.tuples(
         STRINGS.filter(lambda s: s != "barrier") | st.integers() | st.floats() | BOOLS | CONTAINERS,
         st.just("residual_filter")),
-    "threads": st.tuples(bad_int(1, none_ok=True), st.just("threads")),
+    # above the cores this process may use is refused too: extra threads only wait
+    "threads": st.tuples(bad_int(1, none_ok=True) | st.integers(usable_cores() + 1, 10**6), st.just("threads")),
     "render_mode": st.tuples(STRINGS.filter(lambda s: s not in ("rgb_array", "human")) | st.integers()
                              | BOOLS, st.just("render_mode")),
 }

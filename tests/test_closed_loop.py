@@ -184,6 +184,18 @@ def test_batch_with_threads_equals_single_runs():
         np.testing.assert_array_equal(loop.X[i], single.X[0])
 
 
+@pytest.mark.parametrize("extra", [1, 10**6])
+def test_a_batch_refuses_more_threads_than_the_process_may_use(extra):
+    from blf_gym.params import usable_cores
+
+    sc = preset("paper-0.1hz", duration=0.01)
+    with pytest.raises(ValueError, match=r"ClosedLoop.threads must be an integer in \[1, %d\]" % usable_cores()):
+        ClosedLoop([sc] * 4, "proposed", threads=usable_cores() + extra)
+    with pytest.raises(ValueError, match="ClosedLoop.threads"):
+        ClosedLoop([sc], "proposed", threads=0)
+    assert ClosedLoop([sc], "proposed", threads=usable_cores()).threads == usable_cores()
+
+
 def test_gains_are_validated():
     with pytest.raises(ValueError, match="K1"):
         proposed(K1=(1.0, 2.0))

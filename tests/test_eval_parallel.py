@@ -138,9 +138,9 @@ def test_an_env_that_records_the_metrics_channels_keeps_the_same_numbers():
         assert some.step_violations == full.step_violations and some.diverged == full.diverged
 
 
-@pytest.mark.parametrize("bad", [("e1", "e1"), ("e9",), (3,)])
-def test_record_channels_refuses_unknown_or_repeated_names(bad):
-    with pytest.raises(ValueError, match="record_channels must be distinct names among"):
+@pytest.mark.parametrize("bad", [("e1", "e1"), ("e9",), (3,), "u", {"u"}, {"u": 1}, 3])
+def test_record_channels_refuses_unknown_or_repeated_names_and_non_sequences(bad):
+    with pytest.raises(ValueError, match="record_channels must be a list or tuple of distinct names among"):
         EnvCore(1, record=True, record_channels=bad)
 
 
