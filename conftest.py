@@ -11,6 +11,20 @@ os.environ.setdefault("BLF_QUICK", "1")
 # the workers with --jobs 2 and checks that they score the same records.
 os.environ.setdefault("BLF_GYM_JOBS", "1")
 
+# Every cache blf-gym keeps in its own folder (the plug-ins' compiled glue, blf-eval's law results,
+# the NMPC's solver) goes to one temporary folder per test run, made here by the first process (the
+# xdist controller, before it starts the workers) and inherited by the workers, their subprocesses
+# and the notebooks' kernels through the environment; removed at the end of the run. The closed-loop
+# kernels' own numba cache stays beside the sources (blf_gym/__pycache__): built once, it is what
+# keeps a second run of the suite from compiling every kernel again (several minutes on 2 cores).
+if "BLF_GYM_TEST_CACHE" not in os.environ:
+    import tempfile
+
+    os.environ["BLF_GYM_TEST_CACHE"] = os.environ["BLF_GYM_CACHE_DIR"] = tempfile.mkdtemp(prefix="blf-gym-tests-")
+    _OWN_CACHE = os.environ["BLF_GYM_TEST_CACHE"]
+else:
+    _OWN_CACHE = None
+
 # Torch on one thread, as the README tells a user training beside the env: the env warns once per
 # process when torch's threads and its own exceed the cores (tests that check that warning run in a
 # fresh interpreter), and on the 2-core CI machine the suite's small trainings run faster so.
@@ -23,6 +37,26 @@ else:
 
 
 import pytest  # noqa: E402
+
+
+def pytest_unconfigure(config):
+    if _OWN_CACHE is not None and not hasattr(config, "workerinput"):
+        import shutil
+
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+
+
+def pytest_report_header(config):
+    """Say, before the first dot, that a first run compiles the closed-loop kernels first: without
+    it the run prints nothing for minutes."""
+    try:
+        from blf_gym.simulate import kernels_cached
+    except ImportError:
+        return None
+    if kernels_cached():
+        return None
+    return ("blf-gym: the closed-loop kernels are not compiled yet (first run of this checkout): the workers "
+            "compile them before their first tests, several minutes on 2 cores; later runs load them")
 
 
 def pytest_configure(config):

@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import re
 import sys
 import textwrap
 import time
@@ -53,7 +52,7 @@ import numpy as np
 from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, help_text, os_error_message
 from blf_gym.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
 from blf_gym.params import PRESETS, Scenario, preset
-from blf_gym.scenarios import SUITES, apply_variations, sample_suite
+from blf_gym.scenarios import SUITES, apply_variations, sample_suite, variation_label
 
 from . import lawcache
 from .lawcache import law_key, load_law, store_law
@@ -134,7 +133,7 @@ def build_scenarios(
             raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
         sc = preset(name, **sim_over)
         if kwargs:
-            sc = apply_variations(sc, kwargs, name=name + variation_label(kwargs))
+            sc = apply_variations(sc, kwargs)  # named with the variations' label (blf_gym.scenarios)
         groups.append((sc.name, [sc]))
     for name, count in zip(suites, counts):
         if count == 0:
@@ -148,23 +147,6 @@ def build_scenarios(
             eps.append(sc)
         groups.append((name + variation_label(kwargs), eps))
     return groups
-
-
-VARIATION_LABEL_MAX = 40
-"""The longest variation suffix a scenario label carries; longer ones become ``+custom``."""
-
-
-def variation_label(kwargs: dict[str, Any]) -> str:
-    """The suffix a varied group's label gains: the knobs and their values, sorted
-    (``+force=20,frequency=0.5``), or ``+custom`` past :data:`VARIATION_LABEL_MAX` characters or
-    with characters a file name should not hold; empty without variations. The label names what
-    was run: a 0.1 Hz preset varied to 0.5 Hz reads ``paper-0.1hz+frequency=0.5``."""
-    if not kwargs:
-        return ""
-    text = ",".join(f"{k}={json.dumps(v, separators=(',', ':'))}" for k, v in sorted(kwargs.items()))
-    if len(text) > VARIATION_LABEL_MAX or not re.fullmatch(r"[\w.,=\[\]+-]+", text):
-        return "+custom"
-    return "+" + text
 
 
 CONTROLLER_BATCH = 8
@@ -1075,6 +1057,33 @@ def _execute(ctx: _Context, pieces: list[_Piece], workers: _Workers | None, done
     workers.close()
 
 
+def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[str, list[Scenario]]],
+                   observer: str, laws_needed: bool) -> None:
+    """Compile (or load) every closed-loop kernel the run steps, before the progress bar starts, as
+    a phase of its own: each build says so on standard error, and the bar's rate and time left are
+    then measured on the runs alone (a first run's compiles made the first step look like minutes
+    and the bar predict hours). The agents' kernels were built when they were loaded
+    (agents.loading); this builds the baselines' (and the law's, on both paths)."""
+    import time
+
+    from blf_gym.envcore import EnvCore
+    from blf_gym.simulate import ClosedLoop
+
+    t0 = time.perf_counter()
+    sc = groups[0][1][0] if groups and groups[0][1] else None
+    if sc is None:
+        return
+    names = [name for name, _, agent in jobs if agent is None] + (["proposed"] if laws_needed else [])
+    for name in dict.fromkeys(names):
+        ClosedLoop([sc, sc], name, observer)  # a batch build, as the baselines' batches step
+    for _, _, agent in jobs:
+        if agent is not None and not agent[2].get("policy"):
+            EnvCore(2, threads=1, **law_env_kwargs(agent[2]))  # the agent's law reference
+    took = time.perf_counter() - t0
+    if took > 2.0:
+        print(f"blf-eval: closed-loop kernels ready ({took:.0f} s); scoring now", file=sys.stderr, flush=True)
+
+
 def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None) -> float:
     """A piece's rough cost in seconds of one core: measured here, the inner path costs about 5 ms
     per simulated second of an episode, and an env path about 4 ms plus ``per_step`` per agent step."""
@@ -1147,6 +1156,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     if not args.no_progress:
         from tqdm import tqdm
 
+        _ready_kernels(jobs, groups, args.observer, laws_needed=any(p.kind in ("law_env", "inner_law") for p in pieces)
+                       or own_law)
         bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
     # (job, group, record, [the group's first episode, for the plots]); the table lists them in the
     # order of the jobs and groups, whatever order they ran in

@@ -707,7 +707,9 @@ def _make_callback(out: Path, spec: dict[str, Any], law: dict[str, list[float]],
         def on_trial_complete(self, iteration, trials, trial, **info):
             name = self._name(trial)
             steps = int((trial.last_result or {}).get("timesteps", 0))
-            statuses[name] = ("done" if steps >= spec["timesteps"] else
+            # the run's own record decides when it finished: Ray may end a trial before its last
+            # report (the final curve point) reaches the callback, more so on a loaded machine
+            statuses[name] = ("done" if steps >= spec["timesteps"] or _completed(out / "runs" / name) else
                               "budget" if budget is not None and budget.exhausted() else "pruned")
             self._line({"done": "finished", "pruned": "pruned", "budget": "stopped by the budget"}[statuses[name]],
                        name)
@@ -790,6 +792,31 @@ class _Budget:
                 return budget.exhausted() and "running" not in statuses.values()
 
         return _Stop()
+
+
+def _completed(run: Path) -> bool:
+    """Whether the run folder's blf-train recorded its run as completed."""
+    try:
+        return bool(json.loads((run / "metadata.json").read_text()).get("completed"))
+    except (OSError, ValueError):
+        return False
+
+
+def _budget_statuses(out: Path, spec: dict[str, Any], statuses: dict[str, str]) -> None:
+    """Once the budget has ended the sweep: every trial of it that started (its run folder holds a
+    trial.json) and did not finish belongs to the budget, whether the callback saw it run or not.
+    Ray may start a trial, and its blf-train write its folder, before the trial's start reaches the
+    callback (the wider on a loaded machine); such a trial used to fall through to 'stopped'."""
+    for tj in (out / "runs").glob("*/trial.json"):
+        run = tj.parent
+        try:
+            if json.loads(tj.read_text()).get("sweep") != spec["name"]:
+                continue
+            meta = json.loads((run / "metadata.json").read_text()) if (run / "metadata.json").is_file() else {}
+        except (OSError, ValueError):
+            meta = {}
+        if statuses.get(run.name) in (None, "running"):
+            statuses[run.name] = "done" if meta.get("completed") else "budget"
 
 
 def _spec_digest(spec: dict[str, Any]) -> str:
@@ -892,10 +919,7 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         extra["wall_s"] = round(time.time() - t0, 1)
         extra["budget_used_s"] = round(budget.used, 1)
         if budget.exhausted():
-            # a trial still marked running (one Ray ended without a result) is the budget's too
-            for name, st in list(statuses.items()):
-                if st == "running":
-                    statuses[name] = "budget"
+            _budget_statuses(out, spec, statuses)
             printer(f"blf-sweep: the wall-clock budget ({spec['time_budget_s']:.0f} s) is spent")
         info = _write_tables(out, spec, law, statuses, extra)
         c = info["counts"]

@@ -93,6 +93,12 @@ def _make_progress_callback(total: int, start: int, enabled: bool):
             if self.bar is not None:
                 self.bar.close()
 
+        def status(self, text: str) -> None:
+            """What the run does while the step count stands still (a curve point's evaluation)."""
+            bar = getattr(self, "bar", None)
+            if bar is not None:
+                bar.set_postfix_str(text, refresh=True)
+
     return _Progress()
 
 
@@ -127,7 +133,7 @@ class _RunClock:
 
 
 def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta: dict[str, Any],
-                         suite_seeds: int, clock: _RunClock, on_point=None):
+                         suite_seeds: int, clock: _RunClock, on_point=None, status=None):
     """Learning curves: at the start, every ``every`` agent steps and at the end, score the
     deterministic policy with blf-eval's metrics on both paper presets and ``suite_seeds`` held-out
     randomized-suite episodes, and append the records to ``out/eval/curve.json`` (atomic; kept
@@ -156,6 +162,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
                 self._evaluate()
 
         def _evaluate(self) -> None:
+            if status is not None:
+                status(f"evaluating the learning curve at {self.num_timesteps} steps")
             env = self.model.get_env()
             norm = env if isinstance(env, VecNormalize) else None
             point: dict[str, Any] = {"timesteps": int(self.num_timesteps), "wall_s": round(clock.model(), 1)}
@@ -169,6 +177,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
                                      "points": self.points})
             if on_point is not None:
                 on_point()
+            if status is not None:
+                status("")
 
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next_at:
@@ -771,14 +781,15 @@ def _callbacks(plan: _Plan, session: _Session) -> list[Any]:
 
     tc, run = plan.tc, plan.run
     freq = max(1, tc.checkpoint_freq // tc.n_envs)
+    progress = _make_progress_callback(plan.timesteps, session.start.steps, plan.req.progress)
     callbacks = [
         AtomicCheckpointCallback(freq, str(plan.ckpt_dir), state=session.ck_state,
                                  on_saved=lambda _folder: session.record(), name_prefix="model",
                                  save_replay_buffer=True, save_vecnormalize=tc.normalize),
         _make_curve_callback(tc.eval_freq, plan.out, plan.env_kwargs,
                              {"name": session.meta["name"], "mode": run.mode, "env_kwargs": plan.env_kwargs},
-                             tc.curve_suite_seeds, session.clock, on_point=session.record),
-        _make_progress_callback(plan.timesteps, session.start.steps, plan.req.progress),
+                             tc.curve_suite_seeds, session.clock, on_point=session.record, status=progress.status),
+        progress,
     ]
     if tc.curriculum:
         callbacks.append(_make_curriculum_callback(tc.curriculum))

@@ -50,6 +50,7 @@ therefore changes no existing knob's draw in either suite (docs/extending.md, "A
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable, Mapping
 
@@ -58,7 +59,7 @@ import numpy as np
 from .params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
 
 __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
-           "STRESS_SEED_OFFSET", "CERTIFICATE_SEED_OFFSET", "CERTIFICATE_KINDS", "HELD_OUT_SUITES", "UNITS", "apply_variations", "check_variations", "sample_suite",
+           "STRESS_SEED_OFFSET", "CERTIFICATE_SEED_OFFSET", "CERTIFICATE_KINDS", "HELD_OUT_SUITES", "UNITS", "VARIATION_LABEL_MAX", "apply_variations", "check_variations", "variation_label", "varied_name", "sample_suite",
            "outside_training", "resolve_scenario", "SUITES", "widen_bounds"]
 
 
@@ -273,13 +274,65 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
     return out
 
 
+VARIATION_LABEL_MAX = 40
+"""The longest variation suffix a scenario's name carries; longer ones become ``+custom``."""
+
+
+def _label_value(value: Any) -> str:
+    """A knob's value as a label writes it: a whole number without its ``.0``, a per-joint value
+    that is the same on every joint as one number, else ``[a,b,c]``."""
+    if isinstance(value, (tuple, list, np.ndarray)):
+        vals = [float(v) for v in value]
+        if vals and all(v == vals[0] for v in vals):
+            return _label_value(vals[0])
+        return "[" + ",".join(_label_value(v) for v in vals) + "]"
+    v = float(value)
+    return str(int(v)) if v.is_integer() and abs(v) < 1e15 else repr(v)
+
+
+def variation_label(variations: Mapping[str, Any]) -> str:
+    """The suffix a varied scenario's name gains: its knobs and their values, sorted
+    (``+force=20,frequency=0.5``), or ``+custom`` past :data:`VARIATION_LABEL_MAX` characters or
+    with characters a file name should not hold; empty without variations. The same label names a
+    varied scenario everywhere: the env's ``info["scenario"]`` and render title, blf-eval's rows,
+    records and plots. A 0.1 Hz preset varied to 0.5 Hz reads ``paper-0.1hz+frequency=0.5``."""
+    if not variations:
+        return ""
+    text = ",".join(f"{k}={_label_value(v)}" for k, v in sorted(variations.items()))
+    if len(text) > VARIATION_LABEL_MAX or not re.fullmatch(r"[\w.,=\[\]+-]+", text):
+        return "+custom"
+    return "+" + text
+
+
+_LABEL_ITEM = re.compile(r"(\w+)=(\[[^\]]*\]|[^,]+)")
+
+
+def varied_name(name: str, variations: Mapping[str, Any]) -> str:
+    """``name`` with ``variations`` in its label: a name that already carries a label (the scenario
+    was varied before) gets one label for both, the later value of a knob replacing the earlier,
+    so no label is ever doubled (``paper-0.1hz+force=20`` varied by frequency 0.5 reads
+    ``paper-0.1hz+force=20,frequency=0.5``)."""
+    root, plus, tail = name.partition("+")
+    if not plus:
+        return name + variation_label(variations)
+    if tail == "custom":
+        return root + "+custom"
+    old: dict[str, Any] = {}
+    for key, text in _LABEL_ITEM.findall(tail):
+        old[key] = [float(t) for t in text[1:-1].split(",")] if text.startswith("[") else float(text)
+    return root + variation_label({**old, **variations})
+
+
 def apply_variations(base: Scenario, variations: Mapping[str, Any], strict: bool = True,
                      name: str | None = None) -> Scenario:
     """``base`` with the named knobs of :data:`VARIATIONS` applied (validated by
-    :func:`check_variations`), and renamed ``name`` if one is given. Each knob sets its targets
-    (:class:`Knob`); the new scenario is built and checked once, whatever the number of knobs (a
-    reset draws all of them)."""
+    :func:`check_variations`), and named ``name`` if one is given, else ``base``'s name with the
+    variations in its label (:func:`varied_name`). Each knob sets its targets (:class:`Knob`); the
+    new scenario is built and checked once, whatever the number of knobs (a reset draws all of
+    them)."""
     v = check_variations(variations, base.arm.n_links, strict)
+    if name is None and v:
+        name = varied_name(base.name, v)
     parts: dict[str, Any] = {}  # top-level field -> its new value, or a dict of its changed fields
     for knob in KNOBS:
         if knob.name not in v:

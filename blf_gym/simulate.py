@@ -989,6 +989,14 @@ def _specialise(conn: Connection, lanes: int = LANES):
     return _KERNELS[key]
 
 
+def kernels_cached(controller: str = "proposed", observer: str = "leso", n: int = 3) -> bool:
+    """Whether the closed loop of ``controller`` and ``observer`` for ``n`` joints is compiled for
+    the current sources (in numba's disk cache, one arm or a block), without compiling it: how a
+    command or the test suite tells a user that a first run compiles before it starts."""
+    conn = connect(make_controller(controller), make_observer(observer), n)
+    return _is_cached(_specialise(conn, 1)) or _is_cached(_specialise(conn, LANES))
+
+
 def _choose_lanes(conn: Connection, n_arms: int) -> int:
     """The block width for ``n_arms`` arms when the caller leaves it open: :data:`LANES` for two
     arms or more (two arms in a block of four cost what two single arms cost); for a single arm 1
