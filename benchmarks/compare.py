@@ -3,7 +3,7 @@
 This machine's speed drifts by several per cent between runs, so a change is judged against the
 previous commit in the same session: each round runs one short measurement of each tree in its
 own process (``PYTHONPATH`` points at the tree), alternating, and the medians over rounds are
-compared. Three figures, each the median within its process:
+compared. The figures, each measured within its process:
 
 * ``step_us``: one closed-loop step (plant + LESO + proposed law, ODE3 at 0.1 ms), amortised over
   a 30 s run in one compiled call;
@@ -11,6 +11,12 @@ compared. Three figures, each the median within its process:
 * ``vec64``: agent steps per second of the residual vector env at N = 64 on 2 threads (the median
   step of 300; two threads share this machine's two cores with whatever else runs, so a short
   sample swung by a third between rounds);
+* ``env_fresh_us``: the residual ``env.step``'s mean over the first 300 steps of a fresh process
+  (after ``gym.make`` and ``reset``, which load the kernel);
+* ``env_mean_us``, ``env_rand_us``, ``env_plain_us``: the mean ``env.step`` over two 30 s episodes
+  (resets included, and on the training suite the law reference each new episode computes lazily
+  for the score term): residual on the 0.1 Hz preset, residual on ``scenario="randomized"``, plain
+  on the preset;
 * ``batch64_us``: one closed-loop step per arm, amortised over a batch of 64 mixed training-suite
   scenarios with measurement noise on, on one thread (100-step calls, the env's control period),
   in blocks of 4 lanes where the tree has them.
@@ -42,6 +48,20 @@ import gymnasium as gym
 import blf_gym
 from blf_gym.params import preset
 from blf_gym.simulate import ClosedLoop
+
+def mean_step_us(env, steps):  # the mean of `steps` env steps, resets (and a lazy law reference) included
+    a = np.zeros(env.action_space.shape, dtype=np.float32)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        _, _, te, tr, _ = env.step(a)
+        if te or tr:
+            env.reset()
+    return (time.perf_counter() - t0) / steps * 1e6
+
+# first thing in this fresh process: the residual env's first 300 steps after gym.make and reset
+env = gym.make("PlanarBLFResidual-v0")
+env.reset(seed=0)
+fresh = mean_step_us(env, 300)
 
 sc = preset("paper-0.1hz")
 loop = ClosedLoop([sc], "proposed", threads=1)
@@ -93,8 +113,18 @@ for _ in range(5):
     for _ in range(20):
         batch.advance(100, noise=noise, record_samples=0)
     bs.append((time.perf_counter() - t0) / (20 * 100 * 64) * 1e6)
+means = {}
+for key, env_id, scenario in (("env_mean_us", "PlanarBLFResidual-v0", "paper-0.1hz"),
+                              ("env_rand_us", "PlanarBLFResidual-v0", "randomized"),
+                              ("env_plain_us", "PlanarBLF-v0", "paper-0.1hz")):
+    e = gym.make(env_id, scenario=scenario)
+    e.reset(seed=0)
+    mean_step_us(e, 50)
+    e.reset(seed=0)
+    means[key] = mean_step_us(e, 6000)  # two 30 s episodes: two resets, and on the suite two law references
 print(json.dumps({"step_us": statistics.median(steps), "env_us": statistics.median(ts) * 1e6,
-                  "vec64": 64 / statistics.median(vs), "batch64_us": statistics.median(bs)}))
+                  "vec64": 64 / statistics.median(vs), "batch64_us": statistics.median(bs),
+                  "env_fresh_us": fresh, **means}))
 """
 
 
@@ -128,7 +158,11 @@ def main() -> None:
     print(f"\nmedians of {args.rounds} interleaved rounds (lower is better for us, higher for /s):")
     medians: dict[str, dict[str, float]] = {"base": {}, "new": {}}
     for key, unit, better in (("step_us", "us", "lower"), ("env_us", "us", "lower"), ("vec64", "/s", "higher"),
-                              ("batch64_us", "us", "lower")):
+                              ("batch64_us", "us", "lower"), ("env_fresh_us", "us", "lower"),
+                              ("env_mean_us", "us", "lower"), ("env_rand_us", "us", "lower"),
+                              ("env_plain_us", "us", "lower")):
+        if not all(key in x for x in runs["base"] + runs["new"]):
+            continue
         b = statistics.median(x[key] for x in runs["base"])
         n = statistics.median(x[key] for x in runs["new"])
         medians["base"][key], medians["new"][key] = b, n

@@ -647,6 +647,7 @@ class EnvCore:
         self._law_steps = np.zeros((N, self.max_episode_steps if self.weights.relative else 0, n))
         self._stds = np.zeros(N)
         self._no_base = np.zeros((N, n))
+        self._arms = np.arange(N)
         self._noisy: list[int] = []
         self._law_cache: dict[Scenario, tuple[np.ndarray, np.ndarray]] = {}
         # the score term: the law's cumulative e1^2 per 1 ms sample, and each arm's potential
@@ -903,7 +904,7 @@ class EnvCore:
         t_end = self.loop.time
         if self.weights.law_baseline:
             k = np.minimum(self.steps - 1, self.max_episode_steps - 1)
-            base = self._law_steps[np.arange(N), k]
+            base = self._law_steps[self._arms, k]
         else:
             base = self._no_base
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
@@ -1090,10 +1091,8 @@ class EnvCore:
         for k, v in info.items():
             if type(v) is dict:
                 out[k] = {kk: (vv.item(i) if vv.ndim == 1 else vv[i]) for kk, vv in v.items()}
-            elif v.ndim == 1:
-                out[k] = v.item(i)  # a Python scalar (or the object itself)
             else:
-                out[k] = v[i]
+                out[k] = v.item(i) if v.ndim == 1 else v[i]  # a Python scalar (or the object itself)
         return out
 
     # ------------------------------------------------------------------ observation

@@ -873,6 +873,10 @@ COMPARE_ROWS = (
     ("step_us", "closed-loop step (proposed + LESO), one arm, no noise", " us", 3),
     ("batch64_us", "one step per arm, 64 mixed training-suite arms with noise, 1 thread", " us", 3),
     ("env_us", "residual `env.step`", " us", 1),
+    ("env_fresh_us", "residual `env.step`, mean of a fresh process's first 300 steps", " us", 1),
+    ("env_mean_us", "residual `env.step`, mean over two episodes (resets included)", " us", 1),
+    ("env_rand_us", "the same on `scenario=\"randomized\"` (with the law reference of each episode)", " us", 1),
+    ("env_plain_us", "plain `env.step`, mean over two episodes", " us", 1),
     ("vec64", "vector env, residual, N = 64, 2 threads", " /s", 0),
 )
 """``benchmarks/compare.py``'s figures in table order: key, row label, unit, decimals."""
@@ -886,6 +890,8 @@ def compare_table() -> str:
     out = [f"| what | base ({commits['base']}) | new ({commits['new']}) | new / base | over rounds, base; new |",
            "|---|---|---|---|---|"]
     for key, label, unit, digits in COMPARE_ROWS:
+        if key not in d["medians"]["base"] or key not in d["medians"]["new"]:
+            continue  # a file from before the figure was measured
         b, n = d["medians"]["base"][key], d["medians"]["new"][key]
         spans = "; ".join(_span([r[key] for r in d["runs"][t]], _dec(digits)) for t in ("base", "new"))
         out.append(f"| {label} | {b:,.{digits}f}{unit} | {n:,.{digits}f}{unit} | {n / b:.2f}"
