@@ -473,10 +473,14 @@ def _trainable():
     from ray import tune
 
     class BLFTrial(tune.Trainable):
-        def setup(self, config, spec=None, law=None, out=None, poll_s=1.0):  # noqa: D401 - Ray's hook
+        def setup(self, config, spec=None, law=None, out=None, poll_s=1.0, deadline=None):  # noqa: D401 - Ray's hook
             import yaml
 
             self.spec, self.law, self.poll_s = spec, law, poll_s
+            # the wall-clock budget's end (time.time()), or None: once it passes, blf-train gets its
+            # SIGTERM from here, without waiting for a curve point the stopper could act on (on a
+            # loaded machine the next point could be minutes away)
+            self.deadline, self.termed = deadline, False
             params, seed, name = trial_identity(config, spec)
             self.seed = seed
             run = self.run = Path(out) / "runs" / name
@@ -525,10 +529,13 @@ def _trainable():
             while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]):
                 time.sleep(self.poll_s)
                 self._refresh()
+                self._stop_at_deadline()
             exited = self.proc is None or self.proc.poll() is not None
             if exited:
                 self._refresh()
-                if self.proc is not None and self.proc.returncode != 0:
+                # 130: blf-train's exit after the SIGTERM sent at the budget's end (its final save done)
+                if self.proc is not None and self.proc.returncode != 0 and not (self.termed and
+                                                                                self.proc.returncode == 130):
                     tail = (self.run / "train.log").read_text(errors="replace").strip().splitlines()[-5:]
                     raise RuntimeError(f"blf-train exited with {self.proc.returncode} for {self.run.name}: "
                                        + " | ".join(tail))
@@ -538,6 +545,14 @@ def _trainable():
             elif self.last is None:
                 raise RuntimeError(f"blf-train wrote no learning curve for {self.run.name}")
             return dict(self.last, done=exited and not self.queue)
+
+        def _stop_at_deadline(self) -> None:
+            """SIGTERM to blf-train once the budget's end has passed and it has written its first curve
+            point (its handler is installed by then: it saves a final checkpoint and exits)."""
+            if (self.deadline is not None and not self.termed and self.reported >= 0 and self._alive()
+                    and time.time() >= self.deadline):
+                self.proc.send_signal(signal.SIGTERM)
+                self.termed = True
 
         def save_checkpoint(self, checkpoint_dir):
             # the trial's real state is blf-train's own checkpoints in its run folder; Ray's
@@ -760,6 +775,12 @@ class _Budget:
     def used(self) -> float:
         return self.spent + (time.time() - self.t0 if self.t0 is not None else 0.0)
 
+    def deadline(self) -> float | None:
+        """When the budget ends (``time.time()``), with its clock running; None without a limit."""
+        if self.limit is None or self.t0 is None:
+            return None
+        return self.t0 + (self.limit - self.spent)
+
     def exhausted(self) -> bool:
         return self.limit is not None and self.used >= self.limit
 
@@ -773,11 +794,12 @@ class _Budget:
                 atomic_write_json(self.path, {"used_s": round(self.spent, 3), "limit_s": self.limit})
 
     def stopper(self, statuses: dict[str, str]):
-        """Ray Tune's stopper for the budget. Once it is spent, each running trial is stopped at its
-        next curve point, the way ASHA stops one, so its blf-train gets SIGTERM and saves its final
-        checkpoint (stopping the whole experiment at once would kill a trial mid-step, losing the
-        steps since its last checkpoint); the experiment stops when no trial is left running, so a
-        trial can overrun the budget by up to one ``eval_freq``."""
+        """Ray Tune's stopper for the budget. Once it is spent, each running trial ends the way ASHA
+        stops one: its blf-train gets SIGTERM (from the trial itself at the budget's end,
+        :func:`_trainable`'s deadline, or at its next report) and saves its final checkpoint
+        (stopping the whole experiment at once would kill a trial mid-step, losing the steps since
+        its last checkpoint); the experiment stops when no trial is left running, so a trial
+        overruns the budget by the time its final save and curve point take."""
         if self.limit is None:
             return None
         from ray.tune.stopper import Stopper
@@ -879,41 +901,18 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
                 statuses = {}
         printer(f"blf-sweep: {spec['name']}: {total} trials ({spec['search']}, {len(spec['seeds'])} seed(s)), "
                 f"{conc} at a time on {len(nodes)} node(s) with {cpus} CPU(s)")
-        trainable = tune.with_resources(tune.with_parameters(_trainable(), spec=spec, law=law, out=str(out)), {"cpu": 1})
+        budget = _Budget(out, spec["time_budget_s"])
         storage_path = storage or str(out / "ray")
         exp = f"{storage_path.rstrip('/')}/{spec['name']}"
-        budget = _Budget(out, spec["time_budget_s"])
         callback = _make_callback(out, spec, law, statuses, extra, printer, budget)
         extra["time_budget_s"], extra["budget_used_s"] = spec["time_budget_s"], round(budget.used, 1)
         if budget.exhausted():
             printer(f"blf-sweep: the wall-clock budget ({spec['time_budget_s']:.0f} s) is spent; nothing to resume")
             return _write_tables(out, spec, law, statuses, extra)
-        stopper = budget.stopper(statuses)
-        run_config = tune.RunConfig(name=spec["name"], storage_path=storage_path, callbacks=[callback], verbose=0,
-                                    failure_config=tune.FailureConfig(max_failures=0), stop=stopper)
-        if tune.Tuner.can_restore(exp):
-            printer(f"blf-sweep: resuming {exp} (finished trials are kept)")
-            tuner = tune.Tuner.restore(exp, trainable=trainable, resume_unfinished=True, resume_errored=True,
-                                       param_space=_ray_space(spec))
-            # callbacks are not part of the saved state: give the restored run ours (Ray keeps the
-            # run config on its internal tuner; without it the sweep still runs, without progress lines)
-            try:
-                tuner._local_tuner._run_config.callbacks = [callback]  # noqa: SLF001
-                if stopper is not None:
-                    tuner._local_tuner._run_config.stop = stopper  # noqa: SLF001
-            except AttributeError:
-                printer("blf-sweep: this Ray version does not let a restored sweep take callbacks; "
-                        "progress lines and table updates come at the end")
-        else:
-            tuner = tune.Tuner(trainable, param_space=_ray_space(spec), run_config=run_config,
-                               tune_config=tune.TuneConfig(metric="objective", mode="max",
-                                                           num_samples=total if spec["search"] != "grid" else 1,
-                                                           search_alg=_searcher(spec), scheduler=_scheduler(spec),
-                                                           max_concurrent_trials=conc))
         t0 = time.time()
         budget.start()
         try:
-            tuner.fit()
+            _fit(tune, spec, law, out, storage_path, exp, statuses, callback, budget, printer, conc, total)
         finally:
             budget.stop()
         extra["wall_s"] = round(time.time() - t0, 1)
@@ -929,6 +928,38 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
     finally:
         ray.shutdown()
     return info
+
+
+def _fit(tune: Any, spec: dict[str, Any], law: Any, out: Path, storage_path: str, exp: str, statuses: dict[str, str],
+         callback: Any, budget: _Budget, printer: Any, conc: int, total: int) -> None:
+    """Build (or restore) Ray Tune's tuner for the sweep and run it, the budget's clock running: the
+    trials get the budget's end as a deadline (:func:`_trainable`) and the stopper its rule."""
+    deadline = budget.deadline()
+    trainable = tune.with_resources(tune.with_parameters(_trainable(), spec=spec, law=law, out=str(out),
+                                                         deadline=deadline), {"cpu": 1})
+    stopper = budget.stopper(statuses)
+    run_config = tune.RunConfig(name=spec["name"], storage_path=storage_path, callbacks=[callback], verbose=0,
+                                failure_config=tune.FailureConfig(max_failures=0), stop=stopper)
+    if tune.Tuner.can_restore(exp):
+        printer(f"blf-sweep: resuming {exp} (finished trials are kept)")
+        tuner = tune.Tuner.restore(exp, trainable=trainable, resume_unfinished=True, resume_errored=True,
+                                   param_space=_ray_space(spec))
+        # callbacks are not part of the saved state: give the restored run ours (Ray keeps the
+        # run config on its internal tuner; without it the sweep still runs, without progress lines)
+        try:
+            tuner._local_tuner._run_config.callbacks = [callback]  # noqa: SLF001
+            if stopper is not None:
+                tuner._local_tuner._run_config.stop = stopper  # noqa: SLF001
+        except AttributeError:
+            printer("blf-sweep: this Ray version does not let a restored sweep take callbacks; "
+                    "progress lines and table updates come at the end")
+    else:
+        tuner = tune.Tuner(trainable, param_space=_ray_space(spec), run_config=run_config,
+                           tune_config=tune.TuneConfig(metric="objective", mode="max",
+                                                       num_samples=total if spec["search"] != "grid" else 1,
+                                                       search_alg=_searcher(spec), scheduler=_scheduler(spec),
+                                                       max_concurrent_trials=conc))
+    tuner.fit()
 
 
 def _parser() -> argparse.ArgumentParser:

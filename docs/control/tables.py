@@ -4,7 +4,8 @@
 
 * ``protocol.md``: every controller on the protocol (the two presets, the training suite's 20
   held-out episodes, the stress suite's 50), from ``docs/protocol_control/results.json``, written by
-  ``blf-eval --controllers bc lesobc proposed ppc funnel --agents --out docs/protocol_control``.
+  ``blf-eval --controllers bc lesobc proposed ppc funnel proposed_tuned pd_gravity pd_gravity_leso
+  computed_torque computed_torque_leso --agents --out docs/protocol_control``.
 * ``filters.md``: the shipped plain agents with no filter, the barrier filter and the CBF filter,
   from ``docs/filters_plain/<filter>/results.json``, written by ``blf-eval --agents
   agents/pretrained/ppo_plain agents/pretrained/ppo_plain_searched agents/pretrained/ppo_lagrangian
@@ -121,9 +122,13 @@ def nmpc_page() -> str:
 
 TITLES = {
     "protocol.md": ("The control side on the protocol",
-                    "Every registered controller on the benchmark's protocol, the paper's laws beside "
-                    "prescribed-performance and funnel control ([the model](../model.md), sections 12 and 13, "
-                    "gives their equations and gains). `score_vs_law` is against the proposed law with the "
+                    "Every registered controller on the benchmark's protocol: the paper's laws, the proposed "
+                    "law with tuned gains (`proposed_tuned`), prescribed-performance and funnel control, and "
+                    "the classical PD with gravity compensation and computed torque, each full-state and on "
+                    "the LESO ([the model](../model.md), sections 12, 13 and 16, gives their equations and how "
+                    "their gains were chosen: one grid search, 40 points, the same 10 selection episodes and "
+                    "torque budget for each; computed torque has no point within that budget, and runs at the "
+                    "least torque that kept the bounds). `score_vs_law` is against the proposed law with the "
                     "paper's gains; a failure is an episode with a violation or a divergence."),
     "filters.md": ("Filters around the plain agents",
                    "The shipped plain agents (their whole torque from the network) with no filter, and through "
