@@ -73,6 +73,13 @@ def registered_controllers() -> list[str]:
 EVAL_SEED_OFFSET = 10_000
 """Randomized-suite evaluation seeds start here, apart from any training seed."""
 
+REFERENCE = "ppc"
+"""The second yardstick of every record (``score_vs_reference``): the controller with the best
+training-suite score on the protocol when it was fixed (2026-12-06, docs/control/protocol.md:
+prescribed-performance control, 9.79, against the tuned law's 7.90 and full-state PD's 6.40), chosen
+once and fixed for a release. It is run on the inner path on the same scenarios and noise seeds as
+the baselines, and its own rows carry no score against itself."""
+
 
 def suite_seed_offset(suite: str) -> int:
     """First scenario seed of a suite's evaluation episodes (``EVAL_SEED_OFFSET`` for the training
@@ -491,6 +498,10 @@ def _parser() -> argparse.ArgumentParser:
                    help=f"baseline controllers to score on the inner path (default: every registered one, "
                         f"here {' '.join(registered_controllers())}; with --agents, the proposed law alone, the "
                         "reference every score is against; none with an empty list)")
+    p.add_argument("--reference", default=REFERENCE, metavar="NAME",
+                   help=f"the controller every record is also scored against (score_vs_reference; default "
+                        f"{REFERENCE}, the best on the training suite when it was fixed; 'none' for no second "
+                        "yardstick)")
     p.add_argument("--observer", default="leso", metavar="NAME",
                    help="observer of the baseline controllers (a registered plug-in; default leso)")
     p.add_argument("--agents", nargs="*", default=None, metavar="RUN",
@@ -811,6 +822,12 @@ class _Context:
     residual_filter: str | None
     law_folder: Path
     accept_changed_files: bool = False
+    reference: str | None = None
+
+    def reference_key(self, g: int) -> str:
+        """The law cache's key of the reference controller on the inner path on group ``g``."""
+        label, scs = self.groups[g]
+        return law_key(f"inner:{self.reference}", self.observer, scs, _noise_seeds(scs))
 
     def inner_key(self, g: int) -> str:
         """The law cache's key of the proposed law with the LESO on the inner path, on group ``g``."""
@@ -893,6 +910,20 @@ def _inner_law_piece(ctx: _Context, g: int) -> list[Any]:
     return stats
 
 
+def _reference_piece(ctx: _Context, g: int) -> list[Any]:
+    """The reference controller (:data:`REFERENCE`) on the inner path on group ``g``, reduced to
+    EpisodeStats and kept in the law cache, when it is not one of the run's own rows."""
+    key = ctx.reference_key(g)
+    hit = None if ctx.fresh else load_law(key, len(ctx.groups[g][1]))
+    if hit is not None:
+        return hit[0]
+    t0 = time.perf_counter()
+    stats = [episode_stats(t) for t in controller_episodes(ctx.reference, ctx.groups[g][1], ctx.threads,
+                                                           ctx.observer)]
+    store_law(key, stats, time.perf_counter() - t0)
+    return stats
+
+
 def _law_env_piece(ctx: _Context, meta: dict[str, Any], gs: list[int], keys: list[str]) -> list[list[Any]]:
     """The law on the same episodes and noise as an agent's (its env set-up: control period, noise
     draws) on groups ``gs``, all in one go, each group kept in the law cache under its key."""
@@ -943,7 +974,8 @@ def _agent_piece(ctx: _Context, name: str, agent: Any) -> dict[str, Any]:
     return {"per": per, "walls": walls, "files": files, "report": report}
 
 
-_PIECES = {"baseline": _baseline_piece, "inner_law": _inner_law_piece, "law_env": _law_env_piece,
+_PIECES = {"baseline": _baseline_piece, "inner_law": _inner_law_piece, "reference": _reference_piece,
+           "law_env": _law_env_piece,
            "agent": _agent_piece}
 
 
@@ -1058,7 +1090,7 @@ def _execute(ctx: _Context, pieces: list[_Piece], workers: _Workers | None, done
 
 
 def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[str, list[Scenario]]],
-                   observer: str, laws_needed: bool) -> None:
+                   observer: str, laws_needed: bool, extra: Sequence[str] = ()) -> None:
     """Compile (or load) every closed-loop kernel the run steps, before the progress bar starts, as
     a phase of its own: each build says so on standard error, and the bar's rate and time left are
     then measured on the runs alone (a first run's compiles made the first step look like minutes
@@ -1073,7 +1105,7 @@ def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[
     sc = groups[0][1][0] if groups and groups[0][1] else None
     if sc is None:
         return
-    names = [name for name, _, agent in jobs if agent is None] + (["proposed"] if laws_needed else [])
+    names = [name for name, _, agent in jobs if agent is None] + (["proposed"] if laws_needed else []) + list(extra)
     for name in dict.fromkeys(names):
         ClosedLoop([sc, sc], name, observer)  # a batch build, as the baselines' batches step
     for _, _, agent in jobs:
@@ -1082,6 +1114,18 @@ def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[
     took = time.perf_counter() - t0
     if took > 2.0:
         print(f"blf-eval: closed-loop kernels ready ({took:.0f} s); scoring now", file=sys.stderr, flush=True)
+
+
+def _reference_name(name: str | None) -> str | None:
+    """The ``--reference`` controller, checked against the registered ones ('none': no reference)."""
+    if name is None or name == "none":
+        return None
+    from blf_gym.registry import available_controllers
+
+    if name not in available_controllers():
+        raise ValueError(f"--reference {name!r} is not a registered controller; accepted: "
+                         f"{[c for c in available_controllers() if c != 'none']} or 'none'")
+    return name
 
 
 def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None) -> float:
@@ -1107,7 +1151,8 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                    fresh=bool(getattr(args, "fresh_law", False)), save_traj=bool(args.save_traj), out=args.out,
                    want_first=args.out is not None and not args.no_plots,
                    residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder(),
-                   accept_changed_files=bool(getattr(args, "accept_changed_files", False)))
+                   accept_changed_files=bool(getattr(args, "accept_changed_files", False)),
+                   reference=_reference_name(getattr(args, "reference", None)))
     whole = [sc for _, scs in groups for sc in scs]
 
     # the pieces, and which law each record is scored against: ("inner", g) for a baseline, (tag, g)
@@ -1149,6 +1194,12 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     if any(agent is None for _, _, agent in jobs) and not own_law:
         for g, (label, scs) in enumerate(groups):
             pieces.append(_Piece("inner_law", (g,), _cost(scs, 0.0), f"the law / {label}"))
+    # the second yardstick: the reference's own rows serve when it is scored, else its episodes alone
+    ref_scored = ctx.reference is not None and ctx.reference in args.controllers
+    refs: dict[int, list[Any]] = {}
+    if ctx.reference is not None and not ref_scored:
+        for g, (label, scs) in enumerate(groups):
+            pieces.append(_Piece("reference", (g,), _cost(scs, 0.0), f"{ctx.reference} (the reference) / {label}"))
 
     if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
         begin_output_set(args.out, meta_out.get("command"))
@@ -1157,7 +1208,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         from tqdm import tqdm
 
         _ready_kernels(jobs, groups, args.observer, laws_needed=any(p.kind in ("law_env", "inner_law") for p in pieces)
-                       or own_law)
+                       or own_law, extra=[ctx.reference] if ctx.reference is not None and not ref_scored else [])
         bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
     # (job, group, record, [the group's first episode, for the plots]); the table lists them in the
     # order of the jobs and groups, whatever order they ran in
@@ -1180,8 +1231,10 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
                 prov.update(registered_policy=meta["policy"], policy_report=part.get("report"))
         else:
             prov.update(observer=args.observer)
+        own = agent is None and name == ctx.reference  # the reference is not scored against itself
         rec = summarize(part["stats"], name, kind, label, scs[0].sim.dt, wall_s=part["wall"], law=law,
-                        provenance=prov)
+                        provenance=prov, reference=None if own else refs.get(g),
+                        reference_name=ctx.reference)
         results.append((j, g, rec, part["first"]))
         results.sort(key=lambda r: r[:2])
         if bar is not None:
@@ -1189,9 +1242,13 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
         if args.out is not None:  # finished records are kept if the run is interrupted
             write_results([r[2] for r in results], args.out, meta_out)
 
+    def item_ref_ready(w: tuple[int, int, dict[str, Any], tuple[str, int]]) -> bool:
+        j, g = w[0], w[1]
+        return g in refs or (jobs[j][2] is None and jobs[j][0] == ctx.reference)
+
     def settle() -> None:
         # every record whose law is known now
-        for item in [w for w in waiting if w[3] in laws]:
+        for item in [w for w in waiting if w[3] in laws and (ctx.reference is None or item_ref_ready(w))]:
             waiting.remove(item)
             finish(item[0], item[1], item[2], laws[item[3]])
 
@@ -1207,10 +1264,14 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             name, g = piece.args
             if name == "proposed" and own_law:
                 laws.setdefault(("inner", g), result["stats"])  # the law is this row itself
+            if ref_scored and name == ctx.reference:
+                refs.setdefault(g, result["stats"])  # the reference is this row itself
             traj_files.extend(result["files"])
             waiting.append((piece.job, g, result, ("inner", g)))
         elif piece.kind == "inner_law":
             laws[("inner", piece.args[0])] = result
+        elif piece.kind == "reference":
+            refs[piece.args[0]] = result
         elif piece.kind == "law_env":
             for g, stats in zip(piece.args[1], result):
                 laws[(_law_tag(piece.args[0]), g)] = stats

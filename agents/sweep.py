@@ -881,6 +881,12 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
     if address:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
     else:
+        # Ray starts its workers at nice 15, to keep its own processes responsive; here the workers'
+        # trials are the work itself, and at nice 15 beside any other busy process on the machine
+        # they starve (seen: a trial's blf-train at 1.8 % of a core beside two busy processes, a
+        # 90 s budget spent before it trained a step). The local instance runs them at the
+        # priority the sweep was started with; a cluster (--address) keeps its own setting.
+        os.environ.setdefault("RAY_worker_niceness", "0")
         ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING,
                  log_to_driver=False)
     try:

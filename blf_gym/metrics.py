@@ -29,6 +29,7 @@ from .io import atomic_write_json, atomic_write_text
 __all__ = [
     "SCHEMA_VERSION",
     "RECORD_FIELDS",
+    "REFERENCE_FIELDS",
     "violation_mask",
     "score_vs_law",
     "summarize",
@@ -56,6 +57,11 @@ PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "t
 ``registered_policy`` names a ``blf_gym.policies`` entry point scored like an agent, and
 ``policy_report`` is that policy's own account of the run (the NMPC's solve times and fallbacks,
 over all of its episodes in the run)."""
+REFERENCE_FIELDS = ("reference", "score_vs_reference", "per_episode_score_vs_reference")
+"""Optional per-record fields of the second yardstick: the reference controller's name, the
+record's score against it (the same geometric mean as ``score_vs_law``, the reference's RMSE in
+place of the law's, pooled) and per episode. None (or absent, in files written before them) where
+no reference was run, and for the reference's own rows."""
 PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
              "torque_rms", "torque_peak", "saturated_fraction")
 KINDS = ("baseline", "plain", "residual")
@@ -172,6 +178,8 @@ def summarize(
     wall_s: float = 0.0,
     law: Sequence[Any] | None = None,
     provenance: dict[str, Any] | None = None,
+    reference: Sequence[Any] | None = None,
+    reference_name: str | None = None,
 ) -> dict[str, Any]:
     """Pool episodes into one results record.
 
@@ -188,6 +196,10 @@ def summarize(
     (``per_episode_score``), its pooled form (``score_vs_law``: the same geometric mean on the
     pooled RMSEs), ``law_failure_rate`` and ``certificate_broken``. Without it those fields are
     None. ``provenance`` (see :data:`PROVENANCE_FIELDS`) is copied into the record.
+
+    ``reference`` and ``reference_name``: a second yardstick, another controller's trajectories (or
+    EpisodeStats) on the same episodes, for the record's :data:`REFERENCE_FIELDS` (its score against
+    that controller, pooled and per episode, computed as ``score_vs_law`` is).
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
@@ -252,14 +264,18 @@ def summarize(
         extra["per_episode_score"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, law_st)]
         extra["law_failure_rate"] = sum(q.failed for q in law_st) / len(law_st)
         extra["certificate_broken"] = sum(p[2] and not q.failed for p, q in zip(eps, law_st)) / len(eps)
-        law_sq = law_n = 0.0
-        for q in law_st:
-            if q.samples:
-                law_sq = law_sq + q.sq
-                law_n += q.samples
-        pooled_law = np.degrees(np.sqrt(law_sq / law_n)).tolist() if law_n else None
+        pooled_law = _pooled_rmse(law_st)
         pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
         extra["score_vs_law"] = score_vs_law(pooled, pooled_law)
+    extra.update(reference=reference_name if reference is not None else None, score_vs_reference=None,
+                 per_episode_score_vs_reference=None)
+    if reference is not None:
+        ref_st = [episode_stats(t) for t in reference]
+        if len(ref_st) != len(eps):
+            raise ValueError(f"summarize: {len(ref_st)} reference trajectories for {len(eps)} episodes")
+        extra["per_episode_score_vs_reference"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, ref_st)]
+        pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
+        extra["score_vs_reference"] = score_vs_law(pooled, _pooled_rmse(ref_st))
     if provenance:
         unknown = set(provenance) - set(PROVENANCE_FIELDS)
         if unknown:
@@ -292,11 +308,21 @@ def summarize(
     }
 
 
+def _pooled_rmse(stats: Sequence[Any]) -> list[float] | None:
+    """Per joint, the RMSE (degrees) of all 1 ms samples of the episodes' EpisodeStats pooled."""
+    sq, n = 0.0, 0
+    for q in stats:
+        if q.samples:
+            sq = sq + q.sq
+            n += q.samples
+    return np.degrees(np.sqrt(sq / n)).tolist() if n else None
+
+
 def _csv_text(records: Sequence[dict[str, Any]]) -> str:
     n = max((len(r["rmse_deg"]) for r in records), default=3)
     import json
 
-    fields_ = [f for f in RECORD_FIELDS if f not in PER_EPISODE] + list(PROVENANCE_FIELDS)
+    fields_ = [f for f in RECORD_FIELDS if f not in PER_EPISODE] + list(REFERENCE_FIELDS[:2]) + list(PROVENANCE_FIELDS)
     header: list[str] = []
     for f in fields_:
         header.extend([f"{f}_{j + 1}" for j in range(n)] if f in PER_JOINT else [f])

@@ -57,9 +57,10 @@ def test_a_second_run_reuses_the_law_and_scores_to_the_bit(cache, tmp_path, monk
     ARGS = [*globals()["ARGS"], "--jobs", "1"]  # the counting patch holds in this process only
     assert ev.main(["--agents", AGENT, "--out", str(tmp_path / "a"), *ARGS]) == 0
     # four groups (two presets, three randomized and three stress episodes): the law's row on the
-    # inner path per group, and the agent's env reference for all groups in one batched run
+    # inner path per group, and the agent's env reference for all groups in one batched run; the
+    # second yardstick's episodes (agents.evaluate.REFERENCE on the inner path) are kept too, per group
     assert calls == {"inner": 4, "env": 1}
-    assert len(list(cache.glob("*.json"))) == 8
+    assert len(list(cache.glob("*.json"))) == 4 + 4 + 4
     calls.update(inner=0, env=0)
     assert ev.main(["--agents", AGENT, "--out", str(tmp_path / "b"), *ARGS]) == 0
     assert calls == {"inner": 0, "env": 0}

@@ -181,7 +181,9 @@ PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violati
 
 
 def test_record_has_every_spec_field_and_nothing_else(record):
-    assert set(record) == set(SPEC_FIELDS) | set(PER_EPISODE)
+    # the second yardstick's fields are always there (None without a reference)
+    assert set(record) == set(SPEC_FIELDS) | set(PER_EPISODE) | {"reference", "score_vs_reference",
+                                                                "per_episode_score_vs_reference"}
     for f in SPEC_PER_JOINT:
         assert len(record[f]) == 3, f
     assert (record["policy"], record["kind"], record["scenario"], record["dt"], record["wall_s"]) == (
@@ -305,7 +307,7 @@ def test_results_csv_spreads_per_joint_fields(record, tmp_path):
     expected = []
     for fld in SPEC_FIELDS:
         expected += [f"{fld}_{j}" for j in (1, 2, 3)] if fld in SPEC_PER_JOINT else [fld]
-    assert header == expected + list(CSV_PROVENANCE)
+    assert header == expected + ["reference", "score_vs_reference"] + list(CSV_PROVENANCE)
     for row, rec in zip(rows, (record, other)):
         assert row["policy"] == rec["policy"] and row["kind"] == rec["kind"]
         assert int(row["episodes"]) == rec["episodes"]

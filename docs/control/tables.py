@@ -142,6 +142,50 @@ TITLES = {
 """Each page's title and first paragraph, above its generated tables."""
 
 
+UNSEARCHED = {
+    "bc": "the paper's gains (its Table 2), no search",
+    "lesobc": "the paper's gains (its Table 2), no search",
+    "proposed": "the paper's gains (its Table 2), no search: the yardstick",
+    "nmpc": "horizon and weights set by hand while building it (docs/model.md section 15), no search",
+}
+"""How the controllers without a grid search got their gains."""
+
+
+def tuning_table() -> str:
+    """How every controller's gains were chosen: the grid search's size, selection episodes, torque
+    budget and choice from ``docs/gains/NAME/gains.json`` (``python -m baselines.gains``), or how they
+    were set without one."""
+    rows = []
+    for name, how in UNSEARCHED.items():
+        rows.append(f"| `{name}` | {how} | - | - | - | - |")
+    for path in sorted((DOCS / "gains").glob("*/gains.json")):
+        d = json.loads(path.read_text())
+        if "controller" not in d:
+            continue  # a filter's search (docs/gains/cbf), not a controller's
+        name = "proposed_tuned" if d["controller"] == "proposed" else d["controller"]
+        sizes = " x ".join(f"{len(v)} {k}" for k, v in d["grid"].items())
+        points = 1
+        for v in d["grid"].values():
+            points *= len(v)
+        chosen = d.get("chosen")
+        keeping = [r for r in d["rows"] if not r["failed_on"]]
+        if chosen:
+            pick = ", ".join(f"{k} = {v:g}" for k, v in chosen.items())
+        elif keeping:
+            least = min(keeping, key=lambda r: r["effort_ratio"])
+            pick = ("none within the budget: it runs at the point that kept every bound with the least torque, "
+                    + ", ".join(f"{k} = {v:g}" for k, v in least["point"].items())
+                    + f" ({least['effort_ratio']:.2f} x)")
+        else:
+            pick = "none: no point kept every bound on the selection episodes (it runs at its defaults)"
+        rows.append(f"| `{name}` | grid search, `docs/gains/{path.parent.name}/` ({sizes}) | {points} | "
+                    f"{len(d['episodes'])} | {d['effort']:g} x the paper-gain law's RMS torque | {pick} |")
+    return ("How each controller's gains were chosen (the same search, selection episodes and torque budget for "
+            "every searched law; never a held-out or stress episode), written from `docs/gains/*/gains.json`:\n\n"
+            "| controller | how | candidate points | selection episodes | torque budget | chosen |\n"
+            "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+
+
 def _page(name: str, body: str) -> str:
     title, lead = TITLES[name]
     return f"# {title}\n\n{lead}\n\n{body}"
@@ -150,7 +194,7 @@ def _page(name: str, body: str) -> str:
 def pages() -> dict[Path, str]:
     """Every page this script writes, with its text (a page whose results are absent is left out)."""
     out = DOCS / "control"
-    made = {out / "protocol.md": _page("protocol.md", protocol_table())}
+    made = {out / "protocol.md": _page("protocol.md", protocol_table() + "\n" + tuning_table())}
     if (DOCS / "filters_plain").is_dir():
         made[out / "filters.md"] = _page("filters.md", filters_table())
     if (DOCS / "nmpc" / "results.json").is_file():
