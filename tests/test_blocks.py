@@ -48,7 +48,8 @@ def test_sizes():
             size_of(bad, 3, "x")
 
 
-def _nominal(y, arm=ArmParams()):
+def nominal_signal(y, arm=ArmParams()):
+    """The ``nominal`` signal a plug-in reads at the measured angles ``y`` (also tests/test_classical.py's)."""
     n = y.shape[0]
     nom = np.zeros(nominal_length(n))
     nominal_model_into(y, arm.pack(), nom, np.zeros(work_length(n)))
@@ -63,7 +64,7 @@ vectors = st.lists(st.floats(-50.0, 50.0), min_size=3, max_size=3).map(np.array)
 @settings(max_examples=60, deadline=None)
 @given(angles, vectors, vectors)
 def test_operators_match_the_model_at_the_measured_angles(y, v, w):
-    nom = _nominal(y)
+    nom = nominal_signal(y)
     out = np.zeros(3)
     M = mass_matrix(y)
     mass_times(nom, w, out)

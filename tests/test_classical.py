@@ -13,8 +13,10 @@ from hypothesis import strategies as st
 
 from baselines.classical import (CTCGains, PDGains, computed_torque_leso_output, computed_torque_output,
                                  pd_gravity_leso_output, pd_gravity_output)
-from blf_gym.blocks import model_length, nominal_length, nominal_model_into, work_length
+from blf_gym.blocks import work_length
 from blf_gym.params import ArmParams
+
+from test_blocks import nominal_signal  # noqa: E402 (the shared helper of the operator tests)
 
 pin = pytest.importorskip("pinocchio", reason="Pinocchio (pip package 'pin') is not importable")
 
@@ -33,14 +35,6 @@ def _pinocchio(arm: ArmParams):
     return model, model.createData()
 
 
-def _nominal(y: np.ndarray, arm: ArmParams) -> np.ndarray:
-    n = y.shape[0]
-    nom = np.zeros(nominal_length(n))
-    nominal_model_into(y, arm.pack(), nom, np.zeros(work_length(n)))
-    nom[model_length(n) : model_length(n) + 2 * n + 1] = arm.pack()
-    return nom
-
-
 vec = st.lists(st.floats(-3.0, 3.0), min_size=3, max_size=3).map(np.array)
 gains = st.lists(st.floats(1.0, 3000.0), min_size=3, max_size=3).map(np.array)
 
@@ -50,7 +44,7 @@ gains = st.lists(st.floats(1.0, 3000.0), min_size=3, max_size=3).map(np.array)
 def test_computed_torque_is_inverse_dynamics_of_the_commanded_acceleration(y, v, q_d, qd_d, qdd_d, x3, Kp, Kd):
     arm = ArmParams()
     model, data = _pinocchio(arm)
-    nom = _nominal(y, arm)
+    nom = nominal_signal(y, arm)
     a = qdd_d - Kd * (v - qd_d) - Kp * (y - q_d)
     u = np.zeros(3)
     computed_torque_output.py_func(y, v, q_d, qd_d, qdd_d, Kp, Kd, nom, np.zeros(work_length(3)), u)
@@ -65,7 +59,7 @@ def test_computed_torque_is_inverse_dynamics_of_the_commanded_acceleration(y, v,
 def test_pd_with_gravity_compensation(y, v, q_d, qd_d, x3, Kp, Kd):
     arm = ArmParams()
     model, data = _pinocchio(arm)
-    nom = _nominal(y, arm)
+    nom = nominal_signal(y, arm)
     g = pin.computeGeneralizedGravity(model, data, y)
     u = np.zeros(3)
     pd_gravity_output.py_func(y, v, q_d, qd_d, Kp, Kd, nom, u)
