@@ -480,7 +480,7 @@ def _trainable():
             # the wall-clock budget's end (time.time()), or None: once it passes, blf-train gets its
             # SIGTERM from here, without waiting for a curve point the stopper could act on (on a
             # loaded machine the next point could be minutes away)
-            self.deadline, self.termed = deadline, False
+            self.deadline, self.termed, self.held = deadline, False, False
             params, seed, name = trial_identity(config, spec)
             self.seed = seed
             run = self.run = Path(out) / "runs" / name
@@ -523,6 +523,7 @@ def _trainable():
             return self.proc is not None and self.proc.poll() is None
 
         def step(self):
+            self._hold(False)
             self._refresh()
             # the point at the budget is held until blf-train has saved the model and exited:
             # reaching max_t makes Ray stop the trial, and the run must be complete by then
@@ -544,7 +545,22 @@ def _trainable():
                 self.last = _metrics(row, self.run.name, self.seed, self.node)
             elif self.last is None:
                 raise RuntimeError(f"blf-train wrote no learning curve for {self.run.name}")
-            return dict(self.last, done=exited and not self.queue)
+            done = exited and not self.queue
+            if not done:
+                self._hold(True)
+            return dict(self.last, done=done)
+
+        def _hold(self, stop: bool) -> None:
+            """Pause blf-train (SIGSTOP) while Ray decides on the point just reported, and let it go on
+            (SIGCONT) when Ray asks for the next one: a trial the scheduler stops at a rung is stopped
+            there, however slowly a loaded machine lets Ray act (running on, it finished all its
+            steps before the stop arrived). Its numbers do not depend on the pause; its wall clock
+            counts it. Without SIGSTOP (not POSIX) the process runs on, as before."""
+            sig = getattr(signal, "SIGSTOP" if stop else "SIGCONT", None)
+            if sig is None or self.proc is None or self.proc.poll() is not None or stop == self.held:
+                return
+            self.proc.send_signal(sig)
+            self.held = stop
 
         def _stop_at_deadline(self) -> None:
             """SIGTERM to blf-train once the budget's end has passed and it has written its first curve
@@ -566,6 +582,7 @@ def _trainable():
             p = self.proc
             if p is not None and p.poll() is None:  # stopped by the scheduler or by Ctrl-C
                 p.send_signal(signal.SIGTERM)
+                self._hold(False)  # a paused process takes its SIGTERM when it runs again
                 try:
                     p.wait(120)
                 except subprocess.TimeoutExpired:
