@@ -851,11 +851,10 @@ def _budget_statuses(out: Path, spec: dict[str, Any], statuses: dict[str, str]) 
         try:
             if json.loads(tj.read_text()).get("sweep") != spec["name"]:
                 continue
-            meta = json.loads((run / "metadata.json").read_text()) if (run / "metadata.json").is_file() else {}
         except (OSError, ValueError):
-            meta = {}
+            continue  # not a trial of this sweep that can be read
         if statuses.get(run.name) in (None, "running"):
-            statuses[run.name] = "done" if meta.get("completed") else "budget"
+            statuses[run.name] = "done" if _completed(run) else "budget"
 
 
 def _spec_digest(spec: dict[str, Any]) -> str:

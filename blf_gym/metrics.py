@@ -257,6 +257,7 @@ def summarize(
         "per_episode_failed": [e[2] for e in eps],
         "per_episode_score": None, "score_vs_law": None, "certificate_broken": None, "law_failure_rate": None,
     }
+    pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
     if law is not None:
         law_st = [episode_stats(t) for t in law]
         if len(law_st) != len(eps):
@@ -265,7 +266,6 @@ def summarize(
         extra["law_failure_rate"] = sum(q.failed for q in law_st) / len(law_st)
         extra["certificate_broken"] = sum(p[2] and not q.failed for p, q in zip(eps, law_st)) / len(eps)
         pooled_law = _pooled_rmse(law_st)
-        pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
         extra["score_vs_law"] = score_vs_law(pooled, pooled_law)
     extra.update(reference=reference_name if reference is not None else None, score_vs_reference=None,
                  per_episode_score_vs_reference=None)
@@ -274,7 +274,6 @@ def summarize(
         if len(ref_st) != len(eps):
             raise ValueError(f"summarize: {len(ref_st)} reference trajectories for {len(eps)} episodes")
         extra["per_episode_score_vs_reference"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, ref_st)]
-        pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
         extra["score_vs_reference"] = score_vs_law(pooled, _pooled_rmse(ref_st))
     if provenance:
         unknown = set(provenance) - set(PROVENANCE_FIELDS)
