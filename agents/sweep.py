@@ -67,6 +67,7 @@ from blf_gym.params import is_integer, is_real
 from .config import (CONFIG_KEYS, RunSpec, TrainConfig, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
                      shipped_config)
 from .evaluate import CURVE_GROUPS
+from .train import PAUSE_ENV
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
 
@@ -480,7 +481,7 @@ def _trainable():
             # the wall-clock budget's end (time.time()), or None: once it passes, blf-train gets its
             # SIGTERM from here, without waiting for a curve point the stopper could act on (on a
             # loaded machine the next point could be minutes away)
-            self.deadline, self.termed, self.held = deadline, False, False
+            self.deadline, self.termed, self.handshake = deadline, False, False
             params, seed, name = trial_identity(config, spec)
             self.seed = seed
             run = self.run = Path(out) / "runs" / name
@@ -501,9 +502,13 @@ def _trainable():
                 return  # a finished run (after a restore): its curve is reported, nothing is trained
             if prior is not None or (run / "checkpoints").is_dir():
                 args.append("--resume")
+            # on Linux, blf-train stops itself after each curve point (see _paused) until the next
+            # step() lets it go on, so that a trial stopped at a rung has trained to that rung
+            self.handshake = sys.platform.startswith("linux") and hasattr(signal, "SIGSTOP")
+            env = dict(os.environ, **({PAUSE_ENV: "1"} if self.handshake else {}))
             with open(run / "train.log", "ab") as log:
                 self.proc = subprocess.Popen(
-                    [sys.executable, "-m", "agents.train", *args], stdout=log, stderr=subprocess.STDOUT,
+                    [sys.executable, "-m", "agents.train", *args], stdout=log, stderr=subprocess.STDOUT, env=env,
                     preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
 
         def _refresh(self) -> None:
@@ -522,13 +527,25 @@ def _trainable():
         def _alive(self) -> bool:
             return self.proc is not None and self.proc.poll() is None
 
+        def _paused(self) -> bool:
+            """Whether blf-train has stopped itself (state T in /proc/<pid>/stat). A point becomes
+            visible just before the process stops; the trial waits for the stop before it reports
+            the point, so its SIGCONT for the next point cannot arrive before the SIGSTOP."""
+            try:
+                stat = Path(f"/proc/{self.proc.pid}/stat").read_text()
+            except OSError:
+                return False
+            return stat[stat.rfind(")") + 2:][:1] in ("T", "t")
+
         def step(self):
-            self._hold(False)
+            self._go_on()
             self._refresh()
             # the point at the budget is held until blf-train has saved the model and exited:
-            # reaching max_t makes Ray stop the trial, and the run must be complete by then
-            while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]):
-                time.sleep(self.poll_s)
+            # reaching max_t makes Ray stop the trial, and the run must be complete by then; any
+            # other point is reported once blf-train has paused after it (or exited)
+            while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]
+                                     or (self.handshake and len(self.queue) == 1 and not self._paused())):
+                time.sleep(min(self.poll_s, 0.05) if self.queue else self.poll_s)
                 self._refresh()
                 self._stop_at_deadline()
             exited = self.proc is None or self.proc.poll() is not None
@@ -545,22 +562,14 @@ def _trainable():
                 self.last = _metrics(row, self.run.name, self.seed, self.node)
             elif self.last is None:
                 raise RuntimeError(f"blf-train wrote no learning curve for {self.run.name}")
-            done = exited and not self.queue
-            if not done:
-                self._hold(True)
-            return dict(self.last, done=done)
+            return dict(self.last, done=exited and not self.queue)
 
-        def _hold(self, stop: bool) -> None:
-            """Pause blf-train (SIGSTOP) while Ray decides on the point just reported, and let it go on
-            (SIGCONT) when Ray asks for the next one: a trial the scheduler stops at a rung is stopped
-            there, however slowly a loaded machine lets Ray act (running on, it finished all its
-            steps before the stop arrived). Its numbers do not depend on the pause; its wall clock
-            counts it. Without SIGSTOP (not POSIX) the process runs on, as before."""
-            sig = getattr(signal, "SIGSTOP" if stop else "SIGCONT", None)
-            if sig is None or self.proc is None or self.proc.poll() is not None or stop == self.held:
-                return
-            self.proc.send_signal(sig)
-            self.held = stop
+        def _go_on(self) -> None:
+            """SIGCONT to a blf-train that paused after its last point (harmless to a running one):
+            Ray has asked for the next point. Its numbers do not depend on the pause; its wall
+            clock counts it."""
+            if self.handshake and self._alive():
+                self.proc.send_signal(signal.SIGCONT)
 
         def _stop_at_deadline(self) -> None:
             """SIGTERM to blf-train once the budget's end has passed and it has written its first curve
@@ -582,7 +591,7 @@ def _trainable():
             p = self.proc
             if p is not None and p.poll() is None:  # stopped by the scheduler or by Ctrl-C
                 p.send_signal(signal.SIGTERM)
-                self._hold(False)  # a paused process takes its SIGTERM when it runs again
+                self._go_on()  # a paused process takes its SIGTERM when it runs again
                 try:
                     p.wait(120)
                 except subprocess.TimeoutExpired:

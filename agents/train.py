@@ -48,6 +48,8 @@ from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, 
 __all__ = ["TrainRequest", "load_config", "main", "run_training", "train"]
 
 MODES = tuple(ENV_IDS)
+# set to "1" by blf-sweep in its blf-train processes: pause after each learning-curve point
+PAUSE_ENV = "BLF_TRAIN_PAUSE_AT_POINTS"
 
 
 def load_config(path: str | Path) -> dict[str, Any]:
@@ -160,6 +162,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
                 # the untrained policy (for a residual agent, about the law alone), or a point a
                 # kill interrupted before it was written
                 self._evaluate()
+                self._pause()
 
         def _evaluate(self) -> None:
             if status is not None:
@@ -180,10 +183,21 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
             if status is not None:
                 status("")
 
+        def _pause(self) -> None:
+            """With ``BLF_TRAIN_PAUSE_AT_POINTS=1`` (set by blf-sweep's trials), stop this process
+            (SIGSTOP to itself) right after a point is written, until the sweep's trial lets it go on
+            (SIGCONT) once Ray has decided on the point: a trial the scheduler stops at a rung has
+            trained exactly to that rung, however fast the process or slow the machine. Training's
+            numbers do not depend on the pause. Not after the last point (the run goes on to save)."""
+            if os.environ.get(PAUSE_ENV) == "1" and hasattr(signal, "SIGSTOP"):
+                os.kill(os.getpid(), signal.SIGSTOP)
+
         def _on_step(self) -> bool:
             if self.num_timesteps >= self.next_at:
                 self._evaluate()
                 self.next_at = (self.num_timesteps // every + 1) * every
+                if self.num_timesteps < self.model._total_timesteps:
+                    self._pause()
             return True
 
         def _on_training_end(self) -> None:
