@@ -51,6 +51,7 @@ import numpy as np
 
 from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, help_text, os_error_message
 from blf_gym.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
+from blf_gym.levels import DEFAULT_LEVEL, apply_level, check_level
 from blf_gym.params import PRESETS, Scenario, preset
 from blf_gym.scenarios import SUITES, apply_variations, sample_suite, variation_label
 
@@ -116,14 +117,18 @@ of the stress suite (what ``blf-eval`` runs by default)."""
 
 def build_scenarios(
     presets: Sequence[str], suite_seeds: "int | Sequence[int]", kwargs: dict[str, Any], duration: float | None,
-    suite: "str | Sequence[str]" = "randomized",
+    suite: "str | Sequence[str]" = "randomized", level: int = DEFAULT_LEVEL,
 ) -> list[tuple[str, list[Scenario]]]:
     """[(scenario label, episodes)]: each preset is one episode; each suite in ``suite`` has its
     ``suite_seeds`` episodes (one count for all suites, or one per suite).
 
     With variations (``kwargs``) every label gains them (:func:`variation_label`: ``+frequency=0.5``,
     or ``+custom`` when they do not fit in a short label), so a varied result is never mistaken for
-    the plain one; the variations themselves are recorded in each record's provenance by blf-eval."""
+    the plain one; the variations themselves are recorded in each record's provenance by blf-eval.
+    Below the full benchmark (``level`` 3, blf_gym.levels) every episode is taken to that level after
+    its draw and its variations, and every label gains ``@L<level>``."""
+    level = check_level("blf-eval: --level", level)
+    tag = "" if level == DEFAULT_LEVEL else f"@L{level}"
     suites = [suite] if isinstance(suite, str) else list(suite)
     counts = [suite_seeds] * len(suites) if isinstance(suite_seeds, int) else list(suite_seeds)
     if len(counts) == 1 and len(suites) > 1:
@@ -141,6 +146,7 @@ def build_scenarios(
         sc = preset(name, **sim_over)
         if kwargs:
             sc = apply_variations(sc, kwargs)  # named with the variations' label (blf_gym.scenarios)
+        sc = apply_level(sc, level)  # named with its level
         groups.append((sc.name, [sc]))
     for name, count in zip(suites, counts):
         if count == 0:
@@ -151,8 +157,8 @@ def build_scenarios(
             sc = sample_suite(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over), name)
             if kwargs:
                 sc = apply_variations(sc, kwargs)
-            eps.append(sc)
-        groups.append((name + variation_label(kwargs), eps))
+            eps.append(apply_level(sc, level))
+        groups.append((name + variation_label(kwargs) + tag, eps))
     return groups
 
 
@@ -528,6 +534,10 @@ def _parser() -> argparse.ArgumentParser:
                    help='scenario variations applied to every episode, e.g. \'{"payload": 0.15, "force": 20}\' '
                         "(default: none)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="episode length in s (default 30)")
+    p.add_argument("--level", type=int, default=DEFAULT_LEVEL, metavar="L",
+                   help="difficulty level of every episode, 0 to 3 (blf_gym.levels; docs/levels.md): 0 the nominal "
+                        "plant in 10x wider bounds, 1 the scenario's plant in 10x wider bounds, 2 no external force, "
+                        f"3 the full benchmark (default {DEFAULT_LEVEL}); every record names its level")
     p.add_argument("--threads", type=int, default=None, metavar="T",
                    help="threads for each batched simulation (default: one per CPU with --jobs 1, else one, "
                         "as the workers share the CPUs)")
@@ -748,7 +758,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             except OSError as exc:
                 raise ValueError(os_error_message(exc, args.out)) from None
         seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
-        groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite)
+        groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite, args.level)
         if not groups:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
         agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
@@ -797,9 +807,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             workers.close(now=True)  # after an error; a finished run has closed them already
 
 
-def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[str, Any]) -> dict[str, Any]:
-    suite = label.split("+")[0]
-    prov: dict[str, Any] = {"scenario_kwargs": kwargs or None, "noise_seeds": _noise_seeds(scenarios)}
+def _group_provenance(label: str, scenarios: Sequence[Scenario], kwargs: dict[str, Any],
+                      level: int = DEFAULT_LEVEL) -> dict[str, Any]:
+    suite = label.split("+")[0].split("@")[0]
+    prov: dict[str, Any] = {"scenario_kwargs": kwargs or None, "noise_seeds": _noise_seeds(scenarios), "level": level}
     if suite in SUITES:
         off = suite_seed_offset(suite)
         prov.update(suite=suite, suite_seeds=[off + k for k in range(len(scenarios))])
@@ -1220,7 +1231,7 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
     def finish(j: int, g: int, part: dict[str, Any], law: list[Any]) -> None:
         name, kind, agent = jobs[j]
         label, scs = groups[g]
-        prov = _group_provenance(label, scs, kwargs)
+        prov = _group_provenance(label, scs, kwargs, getattr(args, "level", DEFAULT_LEVEL))
         if part.get("reused"):  # the episodes were kept from an earlier identical run (agents/lawcache.py)
             prov.update(law_reused=True)
         if agent is not None:

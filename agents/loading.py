@@ -44,9 +44,10 @@ __all__ = ["POLICY_PREFIX", "algorithm_class", "available_algorithms", "check_ag
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 
 SCORING_REPLACES = ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
-                    "terminate_on_violation", "bound_scale")
+                    "terminate_on_violation", "bound_scale", "level")
 """env kwargs that blf-eval's ``evaluate_agent`` replaces: the scenarios are given, the reward is
-not needed, termination is off, the bounds are the benchmark's own (``bound_scale`` 1)."""
+not needed, termination is off, the bounds are the benchmark's own (``bound_scale`` 1), and the
+level is blf-eval's ``--level`` (the scenarios come at it), not the one the agent trained at."""
 
 
 def available_algorithms() -> list[str]:
@@ -457,6 +458,7 @@ def load_pretrained(name: str | Path, scenario: str | None = None, reward: str =
     kw = dict(meta["env_kwargs"])
     kw.pop("threads", None)
     kw.pop("bound_scale", None)  # a training curriculum's; the agent is judged at the benchmark's bounds
+    kw.pop("level", None)  # the level it trained at; loaded for the benchmark, as blf-eval scores it
     if reward == "score":
         kw.pop("reward_weights", None)
     else:

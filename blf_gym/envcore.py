@@ -21,6 +21,7 @@ from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_i
 from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
+from .levels import DEFAULT_LEVEL, apply_level, check_level
 from .scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
                         widen_bounds)
 from .simulate import CHANNELS, ClosedLoop, divergence_message
@@ -101,6 +102,10 @@ ARGUMENTS: tuple[Argument, ...] = (
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
              "a training curriculum's factor on the funnel's width; the benchmark is 1. Also settable between "
              "episodes as env.unwrapped.bound_scale"),
+    Argument("level", "-", "0 to 3 (blf_gym.levels.LEVELS)",
+             "difficulty level, applied to every scenario the env draws or resets to from its own scenario: "
+             "0 the nominal plant in 10x wider bounds, 1 the scenario's plant in 10x wider bounds, 2 without the "
+             "external force, 3 the full benchmark (docs/levels.md)"),
     Argument("threads", "-", "1 to the cores the process may use (blf_gym.params.usable_cores), or None (1 for "
              "the single env, half the cores for the vector env)",
              "numba threads the arms are split over"),
@@ -438,6 +443,7 @@ class EnvCore:
         observation_extras: Sequence[str] = (),
         residual_filter: str | None = None,
         bound_scale: float = 1.0,
+        level: int = DEFAULT_LEVEL,
         threads: int | None = None,
         record: bool = False,
         record_channels: Sequence[str] | None = None,
@@ -469,6 +475,7 @@ class EnvCore:
         threads = check_int(o, "threads", threads, lo=1, hi=usable_cores(), none_ok=True,
                             hint=" (the cores this process may use: more threads than cores only wait)")
         self.bound_scale = bound_scale  # checked by the property's setter
+        self.level = check_level(o, level)
         self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
         self._set_period(control_period)
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
@@ -672,7 +679,8 @@ class EnvCore:
         return check_variations(options, self.n, kind="reset option")
 
     def scenario_for(self, rng: np.random.Generator, options: Mapping[str, Any] | None) -> Scenario:
-        """The episode's scenario: the suite draw (if any), then option variations."""
+        """The episode's scenario: the suite draw (if any), then option variations, then the level
+        (the same draw at every level: the level is applied last)."""
         sc = self.base
         if self.suite:
             sc = sample_suite(rng, self.base, self.suite)
@@ -680,7 +688,7 @@ class EnvCore:
                 sc = apply_variations(sc, self.variations)
         if options:
             sc = apply_variations(sc, options)  # validates them (reset_envs checked the type)
-        return sc
+        return apply_level(sc, self.level)
 
     def reset_envs(self, idx: Sequence[int], options: Mapping[str, Any] | None = None,
                    scenarios: Sequence[Scenario] | None = None) -> None:

@@ -52,8 +52,10 @@ RECORD_FIELDS = (
 )
 PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violations", "per_episode_failed")
 PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds",
-                     "observer", "law_reused", "registered_policy", "policy_report")
+                     "observer", "law_reused", "registered_policy", "policy_report", "level")
 """Optional per-record fields saying what produced it (the CSV carries them as JSON text).
+``level`` is the difficulty level of the episodes (blf_gym.levels; absent in files written before
+the levels, which were all at level 3, the full benchmark).
 ``registered_policy`` names a ``blf_gym.policies`` entry point scored like an agent, and
 ``policy_report`` is that policy's own account of the run (the NMPC's solve times and fallbacks,
 over all of its episodes in the run)."""

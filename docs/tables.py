@@ -310,12 +310,19 @@ def fused_rounds_table() -> str:
 
 def verdict_table(prefix: str = "") -> str:
     """Each learner of :data:`VERDICT_ROWS`: seeds, agent steps and wall clock per run (from the runs'
-    kept metadata), and rliable's IQM ``score_vs_law`` over seeds x episodes with its 95 % interval
-    and the failure rate, on the training suite's held-out episodes and on the stress suite (its 50
-    episodes, or the certificate's 100 where a report scored those; the cell says which)."""
-    out = ["| learner | seeds | agent steps per run | wall clock per run | IQM, training suite [95 % CI] | "
-           "IQM, stress [95 % CI] (episodes per seed) | failure rate, training / stress |",
-           "|---|---|---|---|---|---|---|"]
+    kept metadata), and rliable's IQM over seeds x episodes with its 95 % interval of its score
+    against three yardsticks: the paper-gain law (``score_vs_law``, on the training suite's held-out
+    episodes and on the stress suite: its 50 episodes, or the certificate's 100 where a report scored
+    those; the cell says which), the reference controller (the second yardstick, on the training
+    suite) and, for a residual over another law, that base law (on the training suite); and the
+    failure rates."""
+    from agents.evaluate import REFERENCE
+
+    out = ["| learner | seeds | agent steps per run | wall clock per run | IQM vs the law, training suite [95 % CI] | "
+           "IQM vs the law, stress [95 % CI] (episodes per seed) | "
+           f"IQM vs {REFERENCE.upper()}, training suite [95 % CI] | IQM vs its own base, training suite [95 % CI] | "
+           "failure rate, training / stress |",
+           "|---|---|---|---|---|---|---|---|---|"]
     stress_episodes = set()
     for label, folder, report, policy, globs in VERDICT_ROWS:
         stats = _load(folder, report)["statistics"]
@@ -323,13 +330,21 @@ def verdict_table(prefix: str = "") -> str:
         missing = [g for g in ("randomized", "stress") if g not in st]
         if missing:
             raise ValueError(f"docs/{folder}/{report} has no statistics for {policy} on {missing}")
+        ref = st["randomized"].get("vs_reference")
+        if ref is None or ref["against"] != REFERENCE:
+            raise ValueError(f"docs/{folder}/{report} has no statistics for {policy} against {REFERENCE} "
+                             f"(python -m agents.report RESULTS --reference {REFERENCE} --reference-results ...)")
+        base = st["randomized"].get("vs_base")
         kept, steps, wall = _budget(globs)
         seeds = len(st["randomized"]["seeds"])
         if kept < seeds:
             wall += f" ({kept} of {seeds} runs' metadata kept)"
         stress_episodes.add(st["stress"]["episodes"])
+        own = (f"{_ci(base, 'iqm', 3)} ({base['against']})" if base is not None else
+               "= vs the law" if st["randomized"]["kind"] == "residual" else "-")
         out.append(f"| {label} | {seeds} | {steps} | {wall} | "
                    f"{_ci(st['randomized'], 'iqm', 3)} | {_ci(st['stress'], 'iqm', 3)} ({st['stress']['episodes']}) | "
+                   f"{_ci(ref, 'iqm', 3)} | {own} | "
                    f"{st['randomized']['failure_rate']:.2f} / {st['stress']['failure_rate']:.2f} |")
     from blf_gym.scenarios import STRESS_SEED_OFFSET as s0
 
@@ -338,6 +353,115 @@ def verdict_table(prefix: str = "") -> str:
             + "".join(f", or {n} (seeds {s0}-{s0 + n - 1})" for n in more)
             + (f" where the certificate's report scored those ([the certificate]({prefix}certificate.md))." if more
                else ".")]
+    return "\n".join(out) + "\n"
+
+
+BEST_FOLDER = "protocol_best"
+"""The residuals over the strongest bases (docs/budget/residual_best.sh, scored by
+``docs/protocol_best/run.sh``)."""
+
+BEST_ROWS = (
+    # label, the seed-pooled policy in docs/protocol_best, its base law
+    ("PPO residual over the tuned law", "res_proposed_tuned", "proposed_tuned"),
+    ("PPO residual over the tuned law, barrier filter", "cert_proposed_tuned", "proposed_tuned"),
+    ("PPO residual over PPC", "res_ppc", "ppc"),
+)
+"""Learning on top of the best controllers: the shipped residual's set-up (config, 1M agent steps,
+seeds 0-4) over the tuned law (without and with the barrier filter, which applies to any gains of
+the proposed law) and over PPC (no filter applies: PPC has no z2_hat)."""
+
+
+def _torque(rec: dict) -> float:
+    """A record's RMS torque over joints (N m): the root of the sum of the joints' squared RMS."""
+    import math
+
+    return math.sqrt(sum(v * v for v in rec["torque_rms"]))
+
+
+def _best_parts() -> dict[str, Any]:
+    """Per row of :data:`BEST_ROWS` and group: the residual's statistics, its base's (from the same
+    report) and the ratio of their RMS torques (mean over seeds)."""
+    from agents.report import seed_group
+
+    stats = _load(BEST_FOLDER, "report.json")["statistics"]
+    recs = _load(BEST_FOLDER)["records"]
+    parts = {}
+    for label, policy, base in BEST_ROWS:
+        for g in _GROUPS:
+            st = next((x for x in stats if x["policy"] == policy and x["scenario"] == g), None)
+            bst = next((x for x in stats if x["policy"] == base and x["scenario"] == g), None)
+            if st is None or bst is None:
+                raise ValueError(f"docs/{BEST_FOLDER}/report.json lacks {policy} or {base} on {g}")
+            mine = [r for r in recs if seed_group(r["policy"])[0] == policy and r["scenario"] == g]
+            torque = sum(_torque(r) for r in mine) / len(mine) / _torque(_pick(recs, base, g))
+            parts[(policy, g)] = {"stat": st, "base": bst, "torque_ratio": torque, "seeds": len(mine)}
+    return parts
+
+
+def best_table() -> str:
+    """The residuals over the strongest bases beside their bases, per group: rliable's IQM over seeds x
+    episodes with its 95 % interval of the score against the paper-gain law, against the reference
+    controller and against the residual's own base, P(improvement over the base), failure rates
+    (residual / base) and the RMS torque as a share of the base's."""
+    parts = _best_parts()
+    from agents.evaluate import REFERENCE
+
+    out = [f"| residual | group | seeds x episodes | IQM vs its base [95 % CI] | P(improvement over the base) [95 % CI] | "
+           f"IQM vs the paper-gain law | IQM vs {REFERENCE.upper()} | failure rate, residual / base | RMS torque / base's |",
+           "|---|---|---|---|---|---|---|---|---|"]
+    for g in _GROUPS:
+        for label, policy, base in BEST_ROWS:
+            p = parts[(policy, g)]
+            st, bst = p["stat"], p["base"]
+            vs = st["vs_base"]
+            ref = st.get("vs_reference")
+            out.append(f"| {label} | {GROUP_LABEL[g]} | {p['seeds']} x {st['episodes']} | {_ci(vs, 'iqm', 3)} | "
+                       f"{_ci(vs, 'prob_improvement', 2)} | {_ci(st, 'iqm', 3)} | "
+                       f"{'-' if ref is None else _ci(ref, 'iqm', 3)} | "
+                       f"{st['failure_rate']:.2f} / {bst['failure_rate']:.2f} | {p['torque_ratio']:.3f} |")
+    return "\n".join(out) + "\n"
+
+
+def best_verdict() -> str:
+    """The verdict on learning over the strongest controllers, in words, from :func:`best_table`'s
+    numbers on the training suite and the stress suite (the README's and results.md's)."""
+    parts = _best_parts()
+    stats = _load(BEST_FOLDER, "report.json")["statistics"]
+
+    def answer(vs: dict) -> str:
+        lo, hi = vs["ci95"]
+        if lo > 1.0:
+            return f"improves on it by {100 * (vs['iqm'] - 1):.0f} %"
+        if hi < 1.0:
+            return f"does worse than it ({100 * (1 - vs['iqm']):.0f} % lower)"
+        return "does not measurably change it"
+
+    lines = []
+    for label, policy, base in BEST_ROWS:
+        tr, sr = parts[(policy, "randomized")], parts[(policy, "stress")]
+        vs = tr["stat"]["vs_base"]
+        base_law = next(x for x in stats if x["policy"] == base and x["scenario"] == "randomized")
+        lines.append(
+            f"- **{label}** ({tr['seeds']} seeds) {answer(vs)} on the training suite: IQM {_ci(vs, 'iqm', 3)} "
+            f"against its base, P(improvement) {vs['prob_improvement']:.2f}; against the paper-gain law "
+            f"{tr['stat']['iqm']:.2f} (the base alone {base_law['iqm']:.2f}). On the stress suite: "
+            f"{_ci(sr['stat']['vs_base'], 'iqm', 3)} against its base. Failure rates, training / stress: "
+            f"{tr['stat']['failure_rate']:.2f} / {sr['stat']['failure_rate']:.2f} (the base "
+            f"{tr['base']['failure_rate']:.2f} / {sr['base']['failure_rate']:.2f}); RMS torque "
+            f"{tr['torque_ratio']:.2f}x the base's on the training suite.")
+    return "\n".join(lines) + "\n"
+
+
+def levels_table() -> str:
+    """The difficulty levels (blf_gym.levels.LEVELS): what each keeps of a drawn scenario and what it
+    changes."""
+    from blf_gym.levels import DEFAULT_LEVEL, LEVELS
+
+    out = ["| level | name | plant | bounds | external force | episode names |", "|---|---|---|---|---|---|"]
+    for lv in LEVELS:
+        tag = "as the scenario's" if lv.number == DEFAULT_LEVEL else f"`<scenario>@L{lv.number}`"
+        out.append(f"| {lv.number}{' (default)' if lv.number == DEFAULT_LEVEL else ''} | {lv.name} | {lv.plant} | "
+                   f"{lv.bounds} | {lv.force} | {tag} |")
     return "\n".join(out) + "\n"
 
 
@@ -962,6 +1086,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                        "residual-rates": residual_rates_table,
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
+    "docs/levels.md": {"levels": levels_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},

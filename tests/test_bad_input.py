@@ -295,6 +295,7 @@ BAD_KWARGS = {
                           st.just("duration")),
     "max_torque": st.tuples(bad_real(0.0, True), st.just("max_torque")),
     "bound_scale": st.tuples(bad_real(1.0, False, hi=15.0, none_ok=False), st.just("bound_scale")),
+    "level": st.tuples(bad_int(0, False) | st.integers(min_value=4), st.just("level")),
     "dt": st.tuples(bad_real(DT_MIN, False, extra=st.sampled_from([3e-4, 7e-5, 1.5e-3, 2e-3, 0.5])),
                     st.just("dt")),
     "variations": _bad_mapping("variations", VARIATIONS, bad_knob) | _unknown_key(repr),

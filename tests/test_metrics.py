@@ -26,7 +26,7 @@ SPEC_FIELDS = (
 )
 # the per-episode arrays live in the JSON only; provenance fields are JSON text in the CSV
 CSV_PROVENANCE = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds", "observer",
-                  "law_reused", "registered_policy", "policy_report")
+                  "law_reused", "registered_policy", "policy_report", "level")
 SPEC_PER_JOINT = ("rmse_deg", "violations", "violation_fraction", "max_excursion_deg", "min_margin_deg",
                   "torque_rms", "torque_peak", "saturated_fraction")
 
