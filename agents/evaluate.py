@@ -514,8 +514,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="trained agents: blf-train run folders or their model zips (default: the shipped "
                         "ones in agents/pretrained; none with an empty list)")
     p.add_argument("--policies", nargs="*", default=[], metavar="NAME",
-                   help="registered policies (the blf_gym.policies entry points, e.g. nmpc) to score like agents, "
-                        "each with the env arguments it asks for (default: none; they can be slow)")
+                   help="registered policies (the blf_gym.policies entry points, e.g. nmpc or floor) to score like "
+                        "agents, each with the env arguments it asks for; NAME:key=value,... passes parameters to "
+                        "its factory (floor:control_period=0.001) (default: none; they can be slow)")
     p.add_argument("--residual-filter", default=None, metavar="NAME",
                    help="run every agent through this residual filter of the proposed law (barrier or cbf, with "
                         "parameters as barrier:handback=0.0033), its name gaining +NAME, or 'none' to run every agent "
@@ -778,7 +779,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         from blf_gym.registry import available_policies
 
         for name in args.policies:
-            if name not in available_policies():
+            if name.partition(":")[0] not in available_policies():  # NAME or NAME:key=value,...
                 raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
                                  "blf_gym.policies entry points)")
         agents += [(POLICY_PREFIX + name, *load_policy(name)) for name in args.policies]

@@ -394,12 +394,19 @@ def load_policy(name: str) -> tuple[Any, dict[str, Any], None]:
     (``blf_gym.registry.make_policy``), shaped as :func:`load_agent`'s answer so blf-eval scores it
     as it scores an agent: the metadata names it, says plain mode and holds the policy's own
     ``env_kwargs``; there are no normalization statistics. ``name`` may carry
-    :data:`POLICY_PREFIX`. The env it asks for is checked as an agent's is."""
+    :data:`POLICY_PREFIX`, and parameters of the policy's factory as ``NAME:key=value,...``
+    (``floor:control_period=0.001``), named so in the records. The env it asks for is checked as an
+    agent's is."""
+    from blf_gym.blocks import parse_filter_spec
     from blf_gym.registry import make_policy
 
     name = name[len(POLICY_PREFIX):] if name.startswith(POLICY_PREFIX) else name
     try:
-        policy = make_policy(name)
+        base, kwargs = parse_filter_spec(name)
+    except ValueError:
+        raise ValueError(f"policy {name!r}: the form is NAME or NAME:key=number,key=number") from None
+    try:
+        policy = make_policy(base, **kwargs)
     except ImportError as exc:  # an optional dependency (the NMPC's CasADi, from the mpc extra)
         raise ValueError(f"policy {name!r}: {_one_line(exc)}") from None
     if (policy.env_kwargs.get("controller") or "none") != "none":

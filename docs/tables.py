@@ -422,9 +422,10 @@ def best_table() -> str:
     return "\n".join(out) + "\n"
 
 
-def best_verdict() -> str:
+def best_verdict(indent: str = "") -> str:
     """The verdict on learning over the strongest controllers, in words, from :func:`best_table`'s
-    numbers on the training suite and the stress suite (the README's and results.md's)."""
+    numbers on the training suite and the stress suite (the README's, as a nested list with
+    ``indent``, and results.md's)."""
     parts = _best_parts()
     stats = _load(BEST_FOLDER, "report.json")["statistics"]
 
@@ -442,7 +443,7 @@ def best_verdict() -> str:
         vs = tr["stat"]["vs_base"]
         base_law = next(x for x in stats if x["policy"] == base and x["scenario"] == "randomized")
         lines.append(
-            f"- **{label}** ({tr['seeds']} seeds) {answer(vs)} on the training suite: IQM {_ci(vs, 'iqm', 3)} "
+            f"{indent}- **{label}** ({tr['seeds']} seeds) {answer(vs)} on the training suite: IQM {_ci(vs, 'iqm', 3)} "
             f"against its base, P(improvement) {vs['prob_improvement']:.2f}; against the paper-gain law "
             f"{tr['stat']['iqm']:.2f} (the base alone {base_law['iqm']:.2f}). On the stress suite: "
             f"{_ci(sr['stat']['vs_base'], 'iqm', 3)} against its base. Failure rates, training / stress: "
@@ -462,6 +463,36 @@ def levels_table() -> str:
         tag = "as the scenario's" if lv.number == DEFAULT_LEVEL else f"`<scenario>@L{lv.number}`"
         out.append(f"| {lv.number}{' (default)' if lv.number == DEFAULT_LEVEL else ''} | {lv.name} | {lv.plant} | "
                    f"{lv.bounds} | {lv.force} | {tag} |")
+    return "\n".join(out) + "\n"
+
+
+FLOOR_ROWS = (("the law (paper gains)", "proposed"), ("floor, 10 ms", "floor"),
+              ("floor, 1 ms (same gains)", "floor:control_period=0.001"))
+"""The floor table's rows: label, the policy's name in docs/floor/L<level>/results.json."""
+
+
+def floor_table() -> str:
+    """The floor (baselines/floor.py) beside the law on every difficulty level, from
+    ``docs/floor/L<level>/results.json`` (docs/floor/run.sh): scores against the paper-gain law on
+    each level's presets, training suite and stress suite, the worst joint's RMSE on the 0.1 Hz
+    preset, and the failure rates."""
+    from blf_gym.levels import LEVELS, level_name
+
+    out = ["| level | policy | score 0.1 Hz / 0.5 Hz | score, training suite | score, stress | worst-joint RMSE, "
+           "0.1 Hz (deg) | first violation, 0.1 Hz (s) | failures: presets / training / stress |",
+           "|---|---|---|---|---|---|---|---|"]
+    for lv in LEVELS:
+        recs = _load(f"floor/L{lv.number}")["records"]
+        tag = "" if lv.number == 3 else f"@L{lv.number}"
+        for label, policy in FLOOR_ROWS:
+            r = {g: _pick(recs, policy, g + tag) for g in _GROUPS}
+            pre = sum(r[g]["failure_rate"] > 0 for g in ("paper-0.1hz", "paper-0.5hz"))
+            first = r["paper-0.1hz"]["first_violation_s"]
+            out.append(f"| {level_name(lv.number)} | {label} | {r['paper-0.1hz']['score_vs_law']:.3f} / "
+                       f"{r['paper-0.5hz']['score_vs_law']:.3f} | {r['randomized']['score_vs_law']:.3f} | "
+                       f"{r['stress']['score_vs_law']:.3f} | {max(r['paper-0.1hz']['rmse_deg']):.3f} | "
+                       f"{'-' if first is None else f'{first:.2f}'} | {pre} of 2 / "
+                       f"{r['randomized']['failure_rate']:.2f} / {r['stress']['failure_rate']:.2f} |")
     return "\n".join(out) + "\n"
 
 
@@ -1086,7 +1117,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                        "residual-rates": residual_rates_table,
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
-    "docs/levels.md": {"levels": levels_table},
+    "docs/levels.md": {"levels": levels_table, "floor": floor_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},

@@ -163,14 +163,16 @@ def tuning_table() -> str:
         if "controller" not in d:
             continue  # a filter's search (docs/gains/cbf), not a controller's
         name = "proposed_tuned" if d["controller"] == "proposed" else d["controller"]
-        sizes = " x ".join(f"{len(v)} {k}" for k, v in d["grid"].items())
-        points = 1
-        for v in d["grid"].values():
-            points *= len(v)
+        sizes = d.get("grid_note") or " x ".join(f"{len(v)} {k}" for k, v in d["grid"].items())
+        points = len(d["rows"])  # every point evaluated
         chosen = d.get("chosen")
         keeping = [r for r in d["rows"] if not r["failed_on"]]
-        if chosen:
+        if chosen and d.get("chosen_keeps_bounds", True):
             pick = ", ".join(f"{k} = {v:g}" for k, v in chosen.items())
+        elif chosen:
+            row = next(r for r in d["rows"] if r["point"] == chosen)
+            pick = (", ".join(f"{k} = {v:g}" for k, v in chosen.items()) + ", the best score within the budget: "
+                    f"no point kept every bound (it breaks one on {len(row['failed_on'])} of {len(d['episodes'])})")
         elif keeping:
             least = min(keeping, key=lambda r: r["effort_ratio"])
             pick = ("none within the budget: it runs at the point that kept every bound with the least torque, "
