@@ -66,6 +66,9 @@ HEADLINE = (
      "results.md"),
     ("PPO residual, barrier filter with hand-back (seed 0 of 5)", "learning + law", "protocol_learners",
      "ppo_residual_certified", "results.md"),
+    ("PPO residual over the tuned law (seed 1 of 5, shipped)", "learning + law", "protocol_best",
+     "res_proposed_tuned_s1", "results.md"),
+    ("PPO residual over PPC (seed 1 of 5, shipped)", "learning + law", "protocol_best", "res_ppc_s1", "results.md"),
     ("plain PPO, searched (best plain learner)", "learning", "protocol_learners", "ppo_plain_searched",
      "plain_search.md"),
     ("plain PPO at 50M steps (sbx, seed 0 of 3)", "learning", "budget/protocol_s0", "sbx_ppo_256_s0", "budget.md"),
@@ -223,6 +226,11 @@ VERDICT_ROWS = (
     ("PPO residual, barrier filter with hand-back", "protocol_certified_handback/barrier_handback", "report.json",
      "ppo_residual_certified+barrier:handback=0.0033",
      ("agents/pretrained/ppo_residual_certified", "docs/protocol_certified/runs/ppo_residual_certified_s*")),
+    ("PPO residual over the tuned law", "protocol_best", "report.json", "res_proposed_tuned",
+     ("docs/budget/runs/res_proposed_tuned_s*",)),
+    ("PPO residual over the tuned law, barrier filter", "protocol_best", "report.json", "cert_proposed_tuned",
+     ("docs/budget/runs/cert_proposed_tuned_s*",)),
+    ("PPO residual over PPC", "protocol_best", "report.json", "res_ppc", ("docs/budget/runs/res_ppc_s*",)),
     ("plain PPO at scale (sbx)", "budget/protocol_scale", "report.json", "sbx_ppo_256",
      ("docs/budget/runs/sbx_ppo_256_s*",)),
     ("SAC for PPO's wall clock (sbx)", "budget/protocol_sac", "report.json", "sbx_sac", ("docs/budget/runs/sbx_sac_s*",)),
@@ -430,12 +438,13 @@ def best_verdict(indent: str = "") -> str:
     stats = _load(BEST_FOLDER, "report.json")["statistics"]
 
     def answer(vs: dict) -> str:
+        # the score is a geometric mean of RMSE ratios, so 1 / score is the RMSE as a share of the base's
         lo, hi = vs["ci95"]
         if lo > 1.0:
-            return f"improves on it by {100 * (vs['iqm'] - 1):.0f} %"
+            return f"lowers its base's RMSE by {100 * (1 - 1 / vs['iqm']):.0f} %"
         if hi < 1.0:
-            return f"does worse than it ({100 * (1 - vs['iqm']):.0f} % lower)"
-        return "does not measurably change it"
+            return f"raises its base's RMSE by {100 * (1 / vs['iqm'] - 1):.0f} %"
+        return "does not measurably change its base's RMSE"
 
     lines = []
     for label, policy, base in BEST_ROWS:
@@ -446,7 +455,12 @@ def best_verdict(indent: str = "") -> str:
             f"{indent}- **{label}** ({tr['seeds']} seeds) {answer(vs)} on the training suite: IQM {_ci(vs, 'iqm', 3)} "
             f"against its base, P(improvement) {vs['prob_improvement']:.2f}; against the paper-gain law "
             f"{tr['stat']['iqm']:.2f} (the base alone {base_law['iqm']:.2f}). On the stress suite: "
-            f"{_ci(sr['stat']['vs_base'], 'iqm', 3)} against its base. Failure rates, training / stress: "
+            f"{_ci(sr['stat']['vs_base'], 'iqm', 3)} against its base."
+            + "".join(f" On the {GROUP_LABEL[g]} preset it {answer(parts[(policy, g)]['stat']['vs_base'])} "
+                      f"({_ci(parts[(policy, g)]['stat']['vs_base'], 'iqm', 3)})."
+                      for g in ("paper-0.1hz", "paper-0.5hz")
+                      if parts[(policy, g)]["stat"]["vs_base"]["ci95"][0] <= 1.0)
+            + " Failure rates, training / stress: "
             f"{tr['stat']['failure_rate']:.2f} / {sr['stat']['failure_rate']:.2f} (the base "
             f"{tr['base']['failure_rate']:.2f} / {sr['base']['failure_rate']:.2f}); RMS torque "
             f"{tr['torque_ratio']:.2f}x the base's on the training suite.")
@@ -1084,7 +1098,8 @@ MEASURED_BLOCKS = (
 
 
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
-    "README.md": {"headline": lambda: headline_table("docs/"), "verdict": lambda: verdict_table("docs/")},
+    "README.md": {"headline": lambda: headline_table("docs/"), "verdict": lambda: verdict_table("docs/"),
+                  "best-verdict": lambda: best_verdict("  ")},
     "docs/reproduction.md": {"reproduction": reproduction_table},
     "docs/results.md": {
         "headline": lambda: headline_table(here="results.md"),
@@ -1095,6 +1110,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
         "seeds": seeds_table,
         "certified-statistics": lambda: statistics_rows_table(CERTIFIED_ROWS),
         "learners": learners_table,
+        "best": best_table,
+        "best-verdict": best_verdict,
     },
     "docs/environment.md": {
         "env-arguments": _env("arguments_table"),

@@ -13,3 +13,5 @@ blf-eval --controllers proposed proposed_tuned ppc \
     --agents "$runs"/res_proposed_tuned_s? "$runs"/cert_proposed_tuned_s? "$runs"/res_ppc_s? \
     --out docs/protocol_best --no-progress
 python -m agents.report docs/protocol_best/results.json --out docs/protocol_best/seeds_table.md > /dev/null
+# the best seed of each residual over a stronger base, shipped as an agent (never read: the stress suite)
+python docs/protocol_best/ship.py "$runs"
