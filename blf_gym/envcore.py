@@ -17,7 +17,8 @@ from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from .registry import available_controllers, available_observers, make_controller, make_observer
 from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
                      STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
-from .params import DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, usable_cores
+from .params import (DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, check_reals,
+                     usable_cores)
 from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
@@ -86,7 +87,11 @@ ARGUMENTS: tuple[Argument, ...] = (
              "Gaussian noise on the measured angles (observer, law and observation)"),
     Argument("duration", "s", "> 0, at most blf_gym.params.MAX_DURATION (3600), or None (the scenario's, 30)",
              "the episode's simulated time; a whole number of control periods"),
-    Argument("max_torque", "N m", "> 0 or None (the scenario's, 150)", "the actuator's limit; plain mode's action scale"),
+    Argument("max_torque", "N m", "> 0 or None (the scenario's, 150)",
+             "the actuator's limit; plain mode's action scale unless action_scale says otherwise"),
+    Argument("action_scale", "N m", "None (max_torque), a number or one per joint, each > 0 and at most max_torque",
+             "plain mode: the torque per joint at action 1 (a learner's exploration in the torques the task "
+             "needs); the actuator's limit stays max_torque. Refused in residual mode (residual_scale)"),
     Argument("dt", "s", ">= 1e-7 or None (the scenario's, 1e-4)", "the ODE3 integration step"),
     Argument("variations", "-", "a dict of blf_gym.scenarios.VARIATIONS",
              "changes to the scenario (with \"randomized\", they override the suite's draw); reset(options=...) "
@@ -437,6 +442,7 @@ class EnvCore:
         angle_noise_std: float | None = None,
         duration: float | None = None,
         max_torque: float | None = None,
+        action_scale: "float | Sequence[float] | None" = None,
         dt: float | None = None,
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
@@ -482,6 +488,7 @@ class EnvCore:
         self.observer = make_observer(observer)
         self.residual = self.controller is not NO_CONTROLLER
         self.residual_scale = float(residual_scale)
+        self.action_scale = self._check_action_scale(action_scale)
         self.privileged = bool(privileged)
         self.terminate_on_violation = bool(terminate_on_violation)
         self._set_reward(reward_weights)
@@ -974,9 +981,31 @@ class EnvCore:
         obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
         return obs, rewards, terminated, truncated, info
 
+    def _check_action_scale(self, value: Any) -> "np.ndarray | None":
+        """``action_scale`` as n N m per joint, or None (plain mode's scale is then max_torque); one
+        number stands for every joint. ValueError names the field and the accepted range."""
+        if value is None:
+            return None
+        o = self.owner
+        if self.residual:
+            raise ValueError(f"{o} action_scale is plain mode's (controller None); in residual mode the residual's "
+                             f"torque at action 1 is residual_scale, got action_scale={value!r}")
+        n, umax = self.base.arm.n_links, self.sim.max_torque
+        if isinstance(value, (list, tuple, np.ndarray)):
+            vals = check_reals(o, "action_scale", list(np.asarray(value, dtype=object).reshape(-1))
+                               if isinstance(value, np.ndarray) else value, n, lo=0.0, hi=umax, lo_open=True,
+                               unit="N m")
+        else:
+            vals = (check_real(o, "action_scale", value, lo=0.0, hi=umax, lo_open=True, unit="N m",
+                               hint=" (at most max_torque)"),) * n
+        return np.asarray(vals, dtype=np.float64)
+
     def _torque(self, a: np.ndarray) -> np.ndarray:
-        """Actions in [-1, 1] as N m: the residual's scale, or in plain mode each arm's torque limit."""
-        return a * (self.residual_scale if self.residual else self._umax[:, None])
+        """Actions in [-1, 1] as N m: the residual's scale, or in plain mode ``action_scale`` per joint
+        (each arm's torque limit when it is None)."""
+        if self.residual:
+            return a * self.residual_scale
+        return a * (self._umax[:, None] if self.action_scale is None else self.action_scale[None, :])
 
     def _draw_noise(self, periods: int, skip: np.ndarray | None = None
                     ) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -296,6 +296,12 @@ BAD_KWARGS = {
     "max_torque": st.tuples(bad_real(0.0, True), st.just("max_torque")),
     "bound_scale": st.tuples(bad_real(1.0, False, hi=15.0, none_ok=False), st.just("bound_scale")),
     "level": st.tuples(bad_int(0, False) | st.integers(min_value=4), st.just("level")),
+    # (a sequence of three numbers in (0, 150] is a valid per-joint scale, so the containers that
+    # happen to be one are left out)
+    "action_scale": st.tuples((bad_real(0.0, True, hi=150.0) | st.just([25.0, 25.0])).filter(
+        lambda v: not (isinstance(v, (list, tuple)) and len(v) == 3 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x <= 150 for x in v))),
+        st.just("action_scale")),
     "dt": st.tuples(bad_real(DT_MIN, False, extra=st.sampled_from([3e-4, 7e-5, 1.5e-3, 2e-3, 0.5])),
                     st.just("dt")),
     "variations": _bad_mapping("variations", VARIATIONS, bad_knob) | _unknown_key(repr),
