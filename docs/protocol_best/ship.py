@@ -49,6 +49,7 @@ def main(argv: list[str]) -> int:
         for f in ("model.zip", "vecnormalize.pkl"):
             shutil.copy2(src / f, dst / f)
         meta = json.loads((src / "metadata.json").read_text())
+        meta["name"] = folder  # blf-eval names the shipped agent by it
         meta["trained_as"] = (
             f"{name}_s{seed}: seed {seed} of 5 (seeds 0-4 chosen before training); trained by "
             f"docs/budget/residual_best.sh two at a time on the 2 cores with agents/configs/"
