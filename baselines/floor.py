@@ -29,7 +29,7 @@ from blf_gym.blocks import model_length, nominal_length, nominal_model_into, wor
 from blf_gym.io import atomic_write_text, help_text
 from blf_gym.observation import (SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index,
                                  unsquash)
-from blf_gym.params import ArmParams
+from blf_gym.params import ArmParams, check_real
 
 from .classical import computed_torque_leso_output
 from .params import params_from, positive_vector
@@ -59,10 +59,8 @@ class FloorParams:
         n = self.nominal.n_links
         object.__setattr__(self, "Kp", positive_vector("FloorParams", "Kp", self.Kp, n, one_for_all=True))
         object.__setattr__(self, "Kd", positive_vector("FloorParams", "Kd", self.Kd, n, one_for_all=True))
-        if isinstance(self.control_period, bool) or not isinstance(self.control_period, (int, float)) \
-                or not np.isfinite(self.control_period) or self.control_period <= 0:
-            raise ValueError(f"FloorParams.control_period must be a finite real number > 0 s, got "
-                             f"{self.control_period!r}")
+        object.__setattr__(self, "control_period", check_real("FloorParams", "control_period", self.control_period,
+                                                              lo=0.0, lo_open=True, unit="s"))
 
 
 class FloorPolicy:
@@ -73,10 +71,7 @@ class FloorPolicy:
 
     def __init__(self, params: FloorParams | None = None, max_torque: float = 150.0) -> None:
         self.params = params or FloorParams()
-        if isinstance(max_torque, bool) or not isinstance(max_torque, (int, float)) or not max_torque > 0 \
-                or not np.isfinite(max_torque):
-            raise ValueError(f"FloorPolicy.max_torque must be a finite real number > 0 N m, got {max_torque!r}")
-        self.max_torque = float(max_torque)
+        self.max_torque = check_real("FloorPolicy", "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m")
         self.name = "floor"
         n = self.params.nominal.n_links
         self.n = n

@@ -992,9 +992,7 @@ class EnvCore:
                              f"torque at action 1 is residual_scale, got action_scale={value!r}")
         n, umax = self.base.arm.n_links, self.sim.max_torque
         if isinstance(value, (list, tuple, np.ndarray)):
-            vals = check_reals(o, "action_scale", list(np.asarray(value, dtype=object).reshape(-1))
-                               if isinstance(value, np.ndarray) else value, n, lo=0.0, hi=umax, lo_open=True,
-                               unit="N m")
+            vals = check_reals(o, "action_scale", value, n, lo=0.0, hi=umax, lo_open=True, unit="N m")
         else:
             vals = (check_real(o, "action_scale", value, lo=0.0, hi=umax, lo_open=True, unit="N m",
                                hint=" (at most max_torque)"),) * n

@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 from typing import Callable
 
 from .params import ArmParams, DeadZoneParams, Scenario, check_int
+from .scenarios import widen_bounds
 
 __all__ = ["DEFAULT_LEVEL", "LEVELS", "WIDE_BOUNDS", "Level", "apply_level", "check_level", "level_name"]
 
@@ -37,10 +38,7 @@ which plain PPO first tracked the 0.1 Hz preset's first 10 s (the issue's audit)
 
 
 def _widen(sc: Scenario) -> Scenario:
-    b = sc.bounds
-    s = WIDE_BOUNDS
-    return replace(sc, bounds=replace(b, upper_amplitude=b.upper_amplitude * s, upper_floor=b.upper_floor * s,
-                                      lower_amplitude=b.lower_amplitude * s, lower_floor=b.lower_floor * s))
+    return widen_bounds(sc, WIDE_BOUNDS)
 
 
 def _no_force(sc: Scenario) -> Scenario:
