@@ -135,7 +135,7 @@ class _RunClock:
 
 
 def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta: dict[str, Any],
-                         suite_seeds: int, clock: _RunClock, on_point=None, status=None):
+                         suite_seeds: int, clock: _RunClock, on_point=None, status=None, total: int | None = None):
     """Learning curves: at the start, every ``every`` agent steps and at the end, score the
     deterministic policy with blf-eval's metrics on both paper presets and ``suite_seeds`` held-out
     randomized-suite episodes, and append the records to ``out/eval/curve.json`` (atomic; kept
@@ -196,7 +196,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
             if self.num_timesteps >= self.next_at:
                 self._evaluate()
                 self.next_at = (self.num_timesteps // every + 1) * every
-                if self.num_timesteps < self.model._total_timesteps:
+                if total is None or self.num_timesteps < total:  # the run's requested total
                     self._pause()
             return True
 
@@ -802,7 +802,8 @@ def _callbacks(plan: _Plan, session: _Session) -> list[Any]:
                                  save_replay_buffer=True, save_vecnormalize=tc.normalize),
         _make_curve_callback(tc.eval_freq, plan.out, plan.env_kwargs,
                              {"name": session.meta["name"], "mode": run.mode, "env_kwargs": plan.env_kwargs},
-                             tc.curve_suite_seeds, session.clock, on_point=session.record, status=progress.status),
+                             tc.curve_suite_seeds, session.clock, on_point=session.record, status=progress.status,
+                             total=plan.timesteps),
         progress,
     ]
     if tc.curriculum:
