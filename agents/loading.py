@@ -44,10 +44,11 @@ __all__ = ["POLICY_PREFIX", "algorithm_class", "available_algorithms", "check_ag
 PRETRAINED = Path(__file__).resolve().parent / "pretrained"
 
 SCORING_REPLACES = ("scenario", "variations", "angle_noise_std", "duration", "threads", "reward_weights",
-                    "terminate_on_violation", "bound_scale", "level")
+                    "terminate_on_violation", "bound_scale", "level", "start_time")
 """env kwargs that blf-eval's ``evaluate_agent`` replaces: the scenarios are given, the reward is
-not needed, termination is off, the bounds are the benchmark's own (``bound_scale`` 1), and the
-level is blf-eval's ``--level`` (the scenarios come at it), not the one the agent trained at."""
+not needed, termination is off, the bounds are the benchmark's own (``bound_scale`` 1), the
+level is blf-eval's ``--level`` (the scenarios come at it), not the one the agent trained at, and
+every scored episode starts at t = 0 (``start_time`` is a training aid)."""
 
 
 def available_algorithms() -> list[str]:

@@ -349,6 +349,14 @@ def _env_kwargs(run: RunSpec, tc: TrainConfig) -> dict[str, Any]:
         env_kwargs["controller"] = run.controller
     if run.observer != "leso":
         env_kwargs["observer"] = run.observer
+    if isinstance(env_kwargs.get("action_scale"), str):
+        # "law": read from the law's torques on this env's own training draws once, and recorded
+        # as numbers, so that the agent is scored with the scale it trained with wherever it goes
+        import gymnasium as gym
+
+        probe = gym.make(ENV_IDS[run.mode], **{"controller": None, **env_kwargs, "threads": 1})
+        env_kwargs["action_scale"] = [float(v) for v in probe.unwrapped.core.action_scale]
+        probe.close()
     return env_kwargs
 
 

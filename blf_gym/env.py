@@ -104,6 +104,7 @@ def _reward_text() -> str:
 {second}
 
         {formula} + score * (phi_k - phi_(k-1)) - violation * [ended by it]
+            - violation_rate * (violating share of the step's samples) [termination off]
 
     with
 
@@ -163,7 +164,9 @@ class PlanarBLFEnv(gym.Env):
 
     ## Starting State
     q(0) = q_d(0) + initial_error (zero in the paper presets), qd(0) = 0; observer
-    x_hat(0) = [q(0), 0, 0].
+    x_hat(0) = [q(0), 0, 0]. A training env may start its episodes later along the reference
+    (``start_time``): at t0, q = q_d(t0) + initial_error, qd = qd_d(t0), x_hat = [q, qd_d(t0), 0],
+    the bounds those of t0. Scoring always starts at t = 0.
 
     ## Episode End
     * **Termination**: any joint error leaves (-k_b(t), k_a(t)) at any integration step

@@ -89,9 +89,14 @@ ARGUMENTS: tuple[Argument, ...] = (
              "the episode's simulated time; a whole number of control periods"),
     Argument("max_torque", "N m", "> 0 or None (the scenario's, 150)",
              "the actuator's limit; plain mode's action scale unless action_scale says otherwise"),
-    Argument("action_scale", "N m", "None (max_torque), a number or one per joint, each > 0 and at most max_torque",
+    Argument("action_scale", "N m", 'None (max_torque), "law" (blf_gym.envcore.law_action_scale), a number or one '
+             "per joint, each > 0 and at most max_torque",
              "plain mode: the torque per joint at action 1 (a learner's exploration in the torques the task "
              "needs); the actuator's limit stays max_torque. Refused in residual mode (residual_scale)"),
+    Argument("start_time", "s", "None, a time or a (low, high) range, in [0, duration - control_period]",
+             "a training aid: each episode starts at that time of the reference (a range: drawn per episode from "
+             "the arm's generator), rounded to whole control periods, the arm on the reference; needs a reward "
+             "without the law's reference (reward_weights with score 0 and relative off). Scoring always starts at 0"),
     Argument("dt", "s", ">= 1e-7 or None (the scenario's, 1e-4)", "the ODE3 integration step"),
     Argument("variations", "-", "a dict of blf_gym.scenarios.VARIATIONS",
              "changes to the scenario (with \"randomized\", they override the suite's draw); reset(options=...) "
@@ -240,6 +245,73 @@ def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
     unknown = sorted(set(kwargs) - set(accepted))
     if unknown:
         raise ValueError(f"unknown argument(s) {unknown} for PlanarBLF; accepted: {accepted}")
+
+
+LAW_SCALE_EPISODES = 16
+"""Noise-free draws of the training scenario over which :func:`law_action_scale` reads the law's torques."""
+LAW_SCALE_MARGIN = 2.0
+""":func:`law_action_scale`'s factor on the largest torque the law applies."""
+LAW_SCALE_SKIP = 0.05
+"""The start-up transient :func:`law_action_scale` leaves out, s: the law's answer to an initial
+error peaks at t = 0 (up to 78 N m on the first joint of the training suite, against at most 17
+afterwards) and decays within 50 ms; a policy capped below it saturates for those few steps."""
+_LAW_SCALES: dict[tuple, tuple[float, ...]] = {}
+
+
+def law_action_scale(scenario: "str | Scenario" = "randomized", level: int = DEFAULT_LEVEL,
+                     max_torque: float | None = None, episodes: int = LAW_SCALE_EPISODES,
+                     margin: float = LAW_SCALE_MARGIN, seed: int = 0) -> tuple[float, ...]:
+    """Plain mode's per-joint action scale read from the proposed law's own torques (N m).
+
+    Per joint: ``margin`` times the largest |u| the proposed law (with the LESO, noise-free, run
+    whole, not terminated) applies after the start-up transient (:data:`LAW_SCALE_SKIP`) over ``episodes`` draws of ``scenario``'s training suite (drawn
+    with ``numpy.random.default_rng(seed)``; a fixed scenario is run once) at ``level``, at most
+    ``max_torque`` (the scenario's actuator limit by default). This is ``action_scale="law"``.
+
+    Why: plain actions are scaled to ``max_torque`` (150 N m) on every joint by default, while the
+    law that keeps every bound uses about a tenth of that on the first joints and a few percent on
+    the last (docs/plain_audit.md). An agent whose action 1 is the whole actuator range spends
+    its exploration noise on torques no good policy uses. The law's largest torques, with a
+    margin, are a range a policy is known to need and a law is known to suffice with, measured
+    per arm on the suite it trains on rather than written down as numbers. The result is cached
+    per process."""
+    base, suite = resolve_scenario(scenario) if isinstance(scenario, str) else (scenario, None)
+    return _law_scale(base, suite, level, max_torque, episodes, margin, seed)
+
+
+def _law_scale(base: Scenario, suite: str | None, level: int, max_torque: float | None, episodes: int,
+               margin: float, seed: int) -> tuple[float, ...]:
+    """:func:`law_action_scale` of the suite ``suite`` drawn around ``base`` (None: ``base`` itself)."""
+    if max_torque is not None:
+        base = replace(base, sim=replace(base.sim, max_torque=float(max_torque)))
+    key = (base, suite, int(level), int(episodes), float(margin), int(seed))
+    if key in _LAW_SCALES:
+        return _LAW_SCALES[key]
+    check_int("law_action_scale", "episodes", episodes, lo=1, hi=1024)
+    check_real("law_action_scale", "margin", margin, lo=1.0)
+    rng = np.random.default_rng(seed)
+    scs = [apply_level(replace(sample_suite(rng, base, suite) if suite else base, angle_noise_std=0.0), level)
+           for _ in range(episodes if suite else 1)]
+    steps = {sc.sim.n_steps for sc in scs}
+    if len(steps) != 1:
+        raise ValueError("law_action_scale: the draws must share one duration")
+    loop = ClosedLoop(scs, "proposed", "leso", threads=min(len(scs), usable_cores()))
+    u, tc = CHANNELS.index("u"), CHANNELS.index("t")
+    top = np.zeros(loop.n)
+    total, chunk = steps.pop(), 10 * loop.steps_per_sample * 100
+    done = 0
+    while done < total:
+        k = min(chunk, total - done)
+        rec, nrec, _ = loop.advance(k, record_samples=k // loop.steps_per_sample + 1)
+        for i in range(len(scs)):
+            later = rec[i, : nrec[i], u][rec[i, : nrec[i], tc, 0] >= LAW_SCALE_SKIP - 1e-12]
+            if len(later):
+                top = np.maximum(top, np.abs(later).max(axis=0))
+        done += k
+    umax = base.sim.max_torque
+    out = tuple(float(min(margin * t, umax)) for t in top)
+    _LAW_SCALES[key] = out
+    return out
 
 
 LAW_CHUNK = 200
@@ -443,6 +515,7 @@ class EnvCore:
         duration: float | None = None,
         max_torque: float | None = None,
         action_scale: "float | Sequence[float] | None" = None,
+        start_time: "float | Sequence[float] | None" = None,
         dt: float | None = None,
         variations: Mapping[str, Any] | None = None,
         reward_weights: RewardWeights | Mapping[str, float] | None = None,
@@ -492,6 +565,7 @@ class EnvCore:
         self.privileged = bool(privileged)
         self.terminate_on_violation = bool(terminate_on_violation)
         self._set_reward(reward_weights)
+        self.start_time = self._check_start_time(start_time)
         self.n = self.base.arm.n_links
         self._build_loop(residual_filter, threads)
         self._set_observation(observation_extras)
@@ -713,7 +787,8 @@ class EnvCore:
             self._umax[i] = sc.sim.max_torque
             self._stds[i] = sc.angle_noise_std
         self._noisy = [int(i) for i in np.flatnonzero(self._stds > 0)]
-        self.loop.set_scenarios(scs, which=list(idx))
+        self.loop.set_scenarios(scs, which=list(idx),
+                                start_steps=None if scenarios is not None else self._start_steps(idx, scs))
         if self.weights.relative:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
         if self._score_w > 0:
@@ -981,12 +1056,50 @@ class EnvCore:
         obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
         return obs, rewards, terminated, truncated, info
 
+    def _check_start_time(self, value: Any) -> "tuple[float, float] | None":
+        """``start_time`` as a (low, high) range in s, or None (every episode starts at t = 0).
+        ValueError names the field and the accepted range, or the reward that cannot go with it."""
+        if value is None:
+            return None
+        o = self.owner
+        last = self.sim.duration - self.control_period
+        hint = f" (at most the duration less one control period, {last:g} s)"
+        if isinstance(value, (list, tuple, np.ndarray)):
+            lo, hi = check_reals(o, "start_time", value, 2, lo=0.0, hi=last, unit="s")
+            if hi < lo:
+                raise ValueError(f"{o} start_time must be a (low, high) range with low <= high, got {value!r}")
+        else:
+            lo = hi = check_real(o, "start_time", value, lo=0.0, hi=last, unit="s", hint=hint)
+        w = self.weights
+        if w.score > 0 or w.relative:
+            raise ValueError(f"{o} start_time needs a reward without the reference law's run from t = 0 (the score "
+                             f"term, relative tracking); give reward_weights with score=0 and relative=False "
+                             f"(e.g. reward_weights={{}}), got start_time={value!r} with {w!r}")
+        return (float(lo), float(hi))
+
+    def _start_steps(self, idx: Sequence[int], scenarios: Sequence[Scenario]) -> "list[int] | None":
+        """Each reset arm's first integration step under ``start_time``: a time drawn from the arm's
+        generator (a range) or fixed, rounded to whole control periods and kept at least one period
+        before the scenario's end; None without ``start_time`` (nothing drawn)."""
+        if self.start_time is None:
+            return None
+        lo, hi = self.start_time
+        p = self.steps_per_period
+        out = []
+        for i, sc in zip(idx, scenarios):
+            t0 = lo if hi == lo else float(self.rngs[i].uniform(lo, hi))
+            k = int(round(t0 / self.control_period)) * p
+            out.append(min(k, (sc.sim.n_steps // p - 1) * p))
+        return out
+
     def _check_action_scale(self, value: Any) -> "np.ndarray | None":
         """``action_scale`` as n N m per joint, or None (plain mode's scale is then max_torque); one
         number stands for every joint. ValueError names the field and the accepted range."""
         if value is None:
             return None
         o = self.owner
+        if isinstance(value, str) and value == "law" and not self.residual:
+            value = _law_scale(self.base, self.suite, self.level, None, LAW_SCALE_EPISODES, LAW_SCALE_MARGIN, 0)
         if self.residual:
             raise ValueError(f"{o} action_scale is plain mode's (controller None); in residual mode the residual's "
                              f"torque at action 1 is residual_scale, got action_scale={value!r}")

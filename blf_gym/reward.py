@@ -21,7 +21,7 @@ from . import sources  # noqa: F401  (before any @njit: numba's cache keys on ea
 
 from .bounds import KA, KB
 from .params import check_bool, check_real
-from .status import ST_DIVERGED, ST_VIOL_STEPS
+from .status import ST_DIVERGED, ST_VIOL_SAMPLES, ST_VIOL_STEPS
 
 __all__ = ["TERMS", "RewardTerm", "SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample",
            "step_outputs", "score_step"]
@@ -127,17 +127,18 @@ def _generate_accumulate():
 accumulate_sample = _generate_accumulate()
 
 
-WVEC_HEAD = ("relative", "relative_cap", "alive", "violation", "terminate_on_violation")
+WVEC_HEAD = ("relative", "relative_cap", "alive", "violation", "terminate_on_violation", "violation_rate")
 """The first entries of :meth:`RewardWeights.pack`'s vector, which :func:`step_outputs` reads; each
 term's weight follows, in the order of TERMS."""
-W_RELATIVE, W_CAP, W_ALIVE, W_VIOLATION, W_TERMINATE = range(len(WVEC_HEAD))
+W_RELATIVE, W_CAP, W_ALIVE, W_VIOLATION, W_TERMINATE, W_VIOLATION_RATE = range(len(WVEC_HEAD))
 _W0 = len(WVEC_HEAD)  # the first term's weight
 
 
 @dataclass(frozen=True)
 class _Weights:
     """Per-agent-step reward r = alive - sum_k w_k E_k + score * (phi_k - phi_{k-1}) - violation *
-    [ended by it], with one term per row of :data:`TERMS` (by default ``tracking`` and ``torque``):
+    [ended by it] (- violation_rate * the step's share of violating samples, when termination is
+    off), with one term per row of :data:`TERMS` (by default ``tracking`` and ``torque``):
     E_k is the row's per-sample value, averaged over the step's 1 ms samples and the joints, and
     w_k its weight, a field of this class named after the row.
 
@@ -169,6 +170,12 @@ class _Weights:
     """Reward per step for staying inside the bounds (>= 0); default sum_k w_k bound_k."""
     violation: float = 100.0
     """Penalty on the step that ends the episode by a violation or divergence (>= 0)."""
+    violation_rate: float = 0.0
+    """A violation cost for training without termination (``terminate_on_violation=False``; >= 0):
+    each agent step loses ``violation_rate`` times the fraction of its 1 ms samples outside the
+    bounds (the whole rate for a step shorter than 1 ms). It grows with the time spent outside, so a policy that violates for less time earns
+    more, where the terminal penalty gives no slope once termination is off. With termination on
+    it charges nothing (the episode ends on the first violating step and pays ``violation``)."""
     relative: bool = False
     """Measure tracking against the law, in the evaluation metric's own terms: E becomes the mean
     over joints of E_j / E_law_j, with E_j the step's mean of e1_j^2 (the squared error itself,
@@ -193,7 +200,7 @@ class _Weights:
             object.__setattr__(self, name, check_bool(o, name, getattr(self, name)))
         object.__setattr__(self, "relative_cap",
                            check_real(o, "relative_cap", self.relative_cap, lo=0.0, lo_open=True))
-        for name in (*(t.name for t in TERMS), "violation", "score"):
+        for name in (*(t.name for t in TERMS), "violation", "violation_rate", "score"):
             object.__setattr__(self, name, check_real(o, name, getattr(self, name), lo=0.0))
         if self.alive is None:
             object.__setattr__(self, "alive", self.max_cost)
@@ -220,7 +227,8 @@ class _Weights:
         """The weights as :func:`step_outputs` reads them (``wvec``): the entries of WVEC_HEAD, then
         each term's weight in the order of TERMS."""
         head = {"relative": float(self.relative), "relative_cap": self.relative_cap, "alive": self.alive,
-                "violation": self.violation, "terminate_on_violation": float(terminate_on_violation)}
+                "violation": self.violation, "terminate_on_violation": float(terminate_on_violation),
+                "violation_rate": self.violation_rate}
         return np.array([*(head[k] for k in WVEC_HEAD), *(getattr(self, t.name) for t in TERMS)])
 
     def check_episode(self, max_episode_steps: int) -> None:
@@ -267,7 +275,7 @@ def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
     N = status.shape[0]
     n = law_e2.shape[1]
     relative = wvec[W_RELATIVE] > 0.0
-    cap, alive, w_violation = wvec[W_CAP], wvec[W_ALIVE], wvec[W_VIOLATION]
+    cap, alive, w_violation, w_rate = wvec[W_CAP], wvec[W_ALIVE], wvec[W_VIOLATION], wvec[W_VIOLATION_RATE]
     terminate_on_violation = wvec[W_TERMINATE] > 0.0
     flags = 0
     for b in range(N):
@@ -289,6 +297,9 @@ def step_outputs(status, sums, law_e2, base, wvec, t_end, durations, out):
         v = status[b, ST_VIOL_STEPS] > 0
         term_ = status[b, ST_DIVERGED] != 0 or (v and terminate_on_violation)
         pen = w_violation if term_ else 0.0
+        if v and not terminate_on_violation:
+            # a step shorter than 1 ms has no sample: its violating integration steps count whole
+            pen += w_rate * (status[b, ST_VIOL_SAMPLES] / samples if sums[b, SUM_SAMPLES] >= 1.0 else 1.0)
         out[R_REWARD, b] = r - pen
         out[R_TERMINATED, b] = 1.0 if term_ else 0.0
         out[R_TRUNCATED, b] = 1.0 if (not term_) and t_end[b] >= durations[b] - 1e-12 else 0.0

@@ -1226,11 +1226,23 @@ class ClosedLoop:
         last = self.last.copy()
         return {name: last[:, base + off : base + off + m] for name, (off, m) in self.connection.out_offsets.items()}
 
-    def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None) -> None:
-        """Install scenarios (all, or the arms listed in ``which``) and reset those arms."""
+    def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None,
+                      start_steps: Sequence[int] | None = None) -> None:
+        """Install scenarios (all, or the arms listed in ``which``) and reset those arms.
+
+        ``start_steps`` (one per reset arm, default all 0) starts an arm at that global integration
+        step instead of t = 0: the arm on its reference at that time (angles plus the scenario's
+        initial error, the reference's velocities), the observer's ``x2_hat`` (when it has one) at
+        those velocities, its other states and the controller's as at t = 0 from those angles; the
+        bounds are then those of that time, since they are functions of time. A training aid
+        (EnvCore's ``start_time``); 0 is the usual start, unchanged."""
         idx = list(range(self.N)) if which is None else list(which)
         if len(scenarios) != len(idx):
             raise ValueError("one scenario per reset arm is required")
+        if start_steps is None:
+            start_steps = [0] * len(idx)
+        elif len(start_steps) != len(idx):
+            raise ValueError("one start step per reset arm is required")
         if not hasattr(self, "_batch"):
             n = self.n
             self._batch = _Batch(
@@ -1244,26 +1256,35 @@ class ClosedLoop:
                                      (self.N, 1)),
             )
         b = self._batch
-        for i, sc in zip(idx, scenarios):
+        for i, sc, k0 in zip(idx, scenarios, start_steps):
             if sc.arm.n_links != self.n or sc.sim.dt != self.dt or sc.sim.steps_per_sample != self.steps_per_sample:
                 raise ValueError("a replacement scenario must keep n links, dt and sample_period")
+            if not (isinstance(k0, (int, np.integer)) and 0 <= k0 < sc.sim.n_steps):
+                raise ValueError(f"a start step must be an integer in [0, {sc.sim.n_steps}) (the scenario's "
+                                 f"integration steps), got {k0!r}")
             b.plant[i] = sc.pack_plant()
             b.ref[i] = sc.pack_reference()
             b.bnd[i] = sc.bounds.pack()
-            self._reset_arm(i, sc)
+            self._reset_arm(i, sc, int(k0))
 
-    def _reset_arm(self, i: int, sc: Scenario) -> None:
+    def _reset_arm(self, i: int, sc: Scenario, k0: int = 0) -> None:
         from .reference import joint_reference
 
         n = self.n
-        q_d0 = joint_reference(0.0, sc)[0]
+        q_d0, qd_d0, _ = joint_reference(k0 * self.dt, sc)
         q0 = q_d0 + np.asarray(sc.initial_error)
         no = self.connection.n_obs
         self.X[i] = 0.0
         self.X[i, :n] = q0
-        self.X[i, 2 * n : 2 * n + no] = self.observer.initial(q0.copy())
+        obs0 = self.observer.initial(q0.copy())
+        if k0:
+            self.X[i, n : 2 * n] = qd_d0
+            part = self.observer.state_offsets(n).get("x2_hat")
+            if part is not None and part[1] == n:
+                obs0[part[0] : part[0] + n] = qd_d0
+        self.X[i, 2 * n : 2 * n + no] = obs0
         self.X[i, 2 * n + no :] = self.controller.initial(q0.copy())
-        self.ksteps[i] = 0
+        self.ksteps[i] = k0
         self.unstable_run[i] = 0
         self.last[i] = 0.0
 

@@ -299,9 +299,16 @@ BAD_KWARGS = {
     # (a sequence of three numbers in (0, 150] is a valid per-joint scale, so the containers that
     # happen to be one are left out)
     "action_scale": st.tuples((bad_real(0.0, True, hi=150.0) | st.just([25.0, 25.0])).filter(
-        lambda v: not (isinstance(v, (list, tuple)) and len(v) == 3 and all(
+        lambda v: v != "law" and not (isinstance(v, (list, tuple)) and len(v) == 3 and all(
             isinstance(x, (int, float)) and not isinstance(x, bool) and 0 < x <= 150 for x in v))),
         st.just("action_scale")),
+    # with the env's default (score) reward every start time is refused, naming start_time; a
+    # valid (low, high) pair would be refused for the same reason, so only values bad in themselves
+    "start_time": st.tuples((bad_real(0.0, False, hi=29.99) | st.just([10.0, 5.0]) | st.just([1.0])).filter(
+        lambda v: not (isinstance(v, (list, tuple)) and len(v) == 2 and all(
+            isinstance(x, (int, float)) and not isinstance(x, bool) and 0 <= x <= 29.99 for x in v)
+            and v[0] <= v[1])),
+        st.just("start_time")),
     "dt": st.tuples(bad_real(DT_MIN, False, extra=st.sampled_from([3e-4, 7e-5, 1.5e-3, 2e-3, 0.5])),
                     st.just("dt")),
     "variations": _bad_mapping("variations", VARIATIONS, bad_knob) | _unknown_key(repr),
