@@ -104,10 +104,13 @@ CURVE_GROUPS = (*PRESETS, "randomized")
 the training suite (never the stress suite); see :func:`curve_scenarios`."""
 
 
-def curve_scenarios(suite_seeds: int, duration: float | None = None) -> list[tuple[str, list[Scenario]]]:
-    """The scenarios of :data:`CURVE_GROUPS`: the paper presets and ``suite_seeds`` held-out
-    episodes of the training suite, ``duration`` seconds each (None: the presets' 30 s)."""
-    return build_scenarios(list(PRESETS), suite_seeds, {}, duration)
+def curve_scenarios(suite_seeds: int, duration: float | None = None,
+                    level: int = DEFAULT_LEVEL) -> list[tuple[str, list[Scenario]]]:
+    """The scenarios of :data:`CURVE_GROUPS`, labelled by group: the paper presets and
+    ``suite_seeds`` held-out episodes of the training suite, ``duration`` seconds each (None: the
+    presets' 30 s), at difficulty ``level`` (an agent's curve is drawn at the level it trains at)."""
+    groups = build_scenarios(list(PRESETS), suite_seeds, {}, duration, level=level)
+    return [(label.split("@L")[0], scs) for label, scs in groups]
 
 
 PROTOCOL_SEEDS = {"randomized": 20, "stress": 50}

@@ -87,14 +87,15 @@ SWEEP_EXTRA = "pip install -c constraints-cpu.txt -e \".[sweep]\"  (or pip insta
 # the score
 
 
-def law_levels(suite_seeds: int, duration: float | None = None, controller: str = "proposed") -> dict[str, list[float]]:
-    """RMSE (deg, per joint) of a baseline controller on the learning-curve scenarios."""
+def law_levels(suite_seeds: int, duration: float | None = None, controller: str = "proposed",
+               level: int = 3) -> dict[str, list[float]]:
+    """RMSE (deg, per joint) of a baseline controller on the learning-curve scenarios at ``level``."""
     from blf_gym.metrics import summarize
 
     from .evaluate import controller_episodes, curve_scenarios
 
     out = {}
-    for label, scs in curve_scenarios(suite_seeds, duration):
+    for label, scs in curve_scenarios(suite_seeds, duration, level):
         # episodes reduced as they come (summarize consumes the generator): memory does not grow with them
         rec = summarize(controller_episodes(controller, scs, threads=1), controller, "baseline", label, scs[0].sim.dt)
         out[label] = [float(v) for v in rec["rmse_deg"]]

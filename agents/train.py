@@ -41,6 +41,7 @@ import numpy as np
 
 from blf_gym import ENV_IDS
 from blf_gym.io import atomic_write_json, help_text
+from blf_gym.levels import DEFAULT_LEVEL
 
 from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, curriculum_scale,
                      parse_overrides, shipped_config)
@@ -149,7 +150,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
     from .evaluate import agent_episodes, curve_scenarios
 
     path = out / "eval" / "curve.json"
-    groups = curve_scenarios(suite_seeds, env_kwargs.get("duration"))
+    groups = curve_scenarios(suite_seeds, env_kwargs.get("duration"), env_kwargs.get("level", DEFAULT_LEVEL))
 
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:
@@ -174,7 +175,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
                 # episodes reduced as they come: memory does not grow with the curve's episodes
                 rec = summarize(agent_episodes(self.model, meta, norm, scs, threads=1), meta["name"], meta["mode"],
                                 label, scs[0].sim.dt)
-                point[label] = {k: rec[k] for k in ("rmse_deg", "violations", "failure_rate", "diverged")}
+                point[label] = {k: rec[k] for k in ("rmse_deg", "violations", "failure_rate", "diverged",
+                                                    "first_violation_s", "violation_fraction")}
             self.points.append(point)
             atomic_write_json(path, {"env_kwargs": env_kwargs, "suite_seeds": suite_seeds,
                                      "points": self.points})

@@ -480,6 +480,21 @@ def levels_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def audit_table() -> str:
+    """The plain-learner audit (docs/plain_audit/summary.json, written by docs/plain_audit/report.py
+    from the kept runs of docs/plain_audit/run.py): each variant's change against the candidate
+    set-up and its learning curve's last point."""
+    d = _load("plain_audit", "summary.json")
+    out = ["| variant | what it changes | agent steps | wall (min) | score_vs_law, last point | failed episodes "
+           "(of 6) | time before the first violation (s) | RMSE 0.1 Hz (deg) |", "|---|---|---|---|---|---|---|---|"]
+    for v in d["variants"]:
+        f = v["final"]
+        rm = " / ".join(f"{x:.3g}" for x in f["rmse_deg"]["paper-0.1hz"])
+        out.append(f"| `{v['name']}` | {v['what']} | {v['timesteps']:,} | {v['wall_s'] / 60:.0f} | "
+                   f"{f['score_vs_law']:.3g} | {f['failed_episodes']} | {f['time_in_bounds_s']:.1f} | {rm} |")
+    return "\n".join(out) + "\n"
+
+
 FLOOR_ROWS = (("the law (paper gains)", "proposed"), ("floor, 10 ms", "floor"),
               ("floor, 1 ms (same gains)", "floor:control_period=0.001"))
 """The floor table's rows: label, the policy's name in docs/floor/L<level>/results.json."""
@@ -1142,6 +1157,9 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/certificate.md": {"certificate-cases": certificate_cases_table, "certified-seeds": certified_seeds_table},
 }
 """Page (from the repository's root) -> marker name -> the function that writes its table."""
+
+if (DOCS / "plain_audit" / "summary.json").is_file():  # until the audit has run, its page says so
+    BLOCKS["docs/plain_audit.md"] = {"audit": audit_table}
 
 for _page, _name, _files, _make in MEASURED_BLOCKS:
     if all((DOCS / "speed" / f"{f}.json").is_file() for f in _files):  # until then the table stays typed
