@@ -486,12 +486,50 @@ def audit_table() -> str:
     set-up and its learning curve's last point."""
     d = _load("plain_audit", "summary.json")
     out = ["| variant | what it changes | agent steps | wall (min) | score_vs_law, last point | failed episodes "
-           "(of 6) | time before the first violation (s) | RMSE 0.1 Hz (deg) |", "|---|---|---|---|---|---|---|---|"]
+           "(of 6) | time before the first violation (s) | samples outside the bounds | RMSE 0.1 Hz (deg) |",
+           "|---|---|---|---|---|---|---|---|---|"]
     for v in d["variants"]:
         f = v["final"]
         rm = " / ".join(f"{x:.3g}" for x in f["rmse_deg"]["paper-0.1hz"])
         out.append(f"| `{v['name']}` | {v['what']} | {v['timesteps']:,} | {v['wall_s'] / 60:.0f} | "
-                   f"{f['score_vs_law']:.3g} | {f['failed_episodes']} | {f['time_in_bounds_s']:.1f} | {rm} |")
+                   f"{f['score_vs_law']:.3g} | {f['failed_episodes']} | {f['time_in_bounds_s']:.1f} | "
+                   f"{f['violating_share']:.2f} | {rm} |")
+    return "\n".join(out) + "\n"
+
+
+LADDER_ROWS = (("the law (paper gains)", "proposed"), ("the law (tuned gains)", "proposed_tuned"), ("PPC", "ppc"),
+               ("floor (10 ms)", "floor"), ("residual PPO over the tuned law (shipped, trained at L3)", "ppo_residual_tuned"),
+               ("plain PPO, 3 seeds x 2M", "ppo_L{level}"), ("plain SAC, 3 seeds x 2M", "sac_L{level}"),
+               ("plain PPO, 20M", "ppo_long_L{level}"))
+"""The ladder's rows: label, the policy's pooled name in docs/ladder/L<level>/report.json ({level}
+filled in); a row a level did not score is left out."""
+
+
+def ladder_table() -> str:
+    """The ladder (issue 61, item 6): per difficulty level, rliable's IQM of ``score_vs_law`` (against
+    the paper-gain law on the same level's episodes) with its 95 % interval on the training suite's
+    and the stress suite's held-out episodes, and the failure rates, from
+    ``docs/ladder/L<level>/report.json`` (docs/ladder/eval.sh)."""
+    from blf_gym.levels import LEVELS, level_name
+
+    out = ["| level | policy | seeds | IQM score, training suite [95 % CI] | IQM score, stress [95 % CI] | "
+           "failure rate: presets / training / stress |", "|---|---|---|---|---|---|"]
+    for lv in LEVELS:
+        if not (DOCS / "ladder" / f"L{lv.number}" / "report.json").is_file():
+            continue
+        stats = _load(f"ladder/L{lv.number}", "report.json")["statistics"]
+        tag = "" if lv.number == 3 else f"@L{lv.number}"
+        for label, policy in LADDER_ROWS:
+            name = policy.format(level=lv.number)
+            st = {g: next((x for x in stats if x["policy"] == name and x["scenario"] == g + tag), None)
+                  for g in _GROUPS}
+            if st["randomized"] is None:
+                continue
+            pre = sum(st[g]["failure_rate"] > 0 for g in ("paper-0.1hz", "paper-0.5hz"))
+            seeds = len([x for x in st["randomized"]["seeds"] if x is not None]) or "-"
+            out.append(f"| {level_name(lv.number)} | {label} | {seeds} | {_ci(st['randomized'], 'iqm', 3)} | "
+                       f"{_ci(st['stress'], 'iqm', 3)} | {pre} of 2 / {st['randomized']['failure_rate']:.2f} / "
+                       f"{st['stress']['failure_rate']:.2f} |")
     return "\n".join(out) + "\n"
 
 
@@ -1158,6 +1196,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
 }
 """Page (from the repository's root) -> marker name -> the function that writes its table."""
 
+if (DOCS / "ladder" / "L3" / "report.json").is_file():  # until the ladder has been scored
+    BLOCKS["docs/levels.md"]["ladder"] = ladder_table
 if (DOCS / "plain_audit" / "summary.json").is_file():  # until the audit has run, its page says so
     BLOCKS["docs/plain_audit.md"] = {"audit": audit_table}
 

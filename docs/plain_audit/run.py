@@ -49,6 +49,10 @@ VARIANTS: dict[str, tuple[str, list[str]]] = {
                 ["env.observation_extras=[q_d_preview, qd_d_preview]"]),
     "score_reward": ("the score reward (the env's default; needs episodes from t = 0)",
                      ["env.reward_weights=null", "env.start_time=null"]),
+    # run after the one-factor variants: the two that gained most at equal steps, together
+    "period_2ms_curriculum": ("period_2ms and curriculum together (run after the others: their two best changes)",
+                              ["env.control_period=0.002", "hyperparams.gamma=0.998",
+                               "curriculum={bound_scale: 10.0, until: 500000}"]),
 }
 """Each variant: what it changes against ``base``, and blf-train's ``--set`` overrides."""
 
