@@ -92,13 +92,16 @@ def plot(summary: dict, path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (a, c, b) = plt.subplots(1, 3, figsize=(17, 4.8))
-    for v in summary["variants"]:
+    cmap = plt.get_cmap("tab20")
+    for k, v in enumerate(summary["variants"]):
         t = np.array([p["timesteps"] for p in v["curve"]]) / 1e6
-        style = "-" if v["name"] == "base" else "--"
-        width = 2.5 if v["name"] == "base" else 1.2
-        a.plot(t, [p["score_vs_law"] for p in v["curve"]], style, lw=width, label=v["name"])
-        b.plot(t, [p["violating_share"] for p in v["curve"]], style, lw=width, label=v["name"])
-        c.plot(t, [p["time_in_bounds_s"] for p in v["curve"]], style, lw=width, label=v["name"])
+        # the candidate and the last, combined variant solid; the one-factor variants dashed
+        last = k == len(summary["variants"]) - 1
+        kw = {"ls": "-" if v["name"] == "base" or last else "--", "lw": 2.5 if v["name"] == "base" or last else 1.2,
+              "color": cmap(k % 20), "label": v["name"]}
+        a.plot(t, [p["score_vs_law"] for p in v["curve"]], **kw)
+        b.plot(t, [p["violating_share"] for p in v["curve"]], **kw)
+        c.plot(t, [p["time_in_bounds_s"] for p in v["curve"]], **kw)
     a.set_yscale("log")
     a.axhline(1.0, color="k", lw=0.8)
     a.set_xlabel("agent steps (millions)")
