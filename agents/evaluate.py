@@ -330,7 +330,8 @@ the same numbers as one call per control period, without the Python of a step fo
 
 def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Sequence[Sequence[Scenario]],
                          threads: int | None = None, batch: int = AGENT_BATCH,
-                         on_batch: Any = None, channels: Sequence[str] | None = None) -> Iterator[tuple[int, Any]]:
+                         on_batch: Any = None, channels: Sequence[str] | None = None,
+                         noise_seeds: Sequence[Sequence[int]] | None = None) -> Iterator[tuple[int, Any]]:
     """A trained agent's trajectories on several groups of scenarios: ``(group index, trajectory)``,
     each group's episodes in order, the groups in order.
 
@@ -344,6 +345,8 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time.
     ``channels`` are the signals each trajectory keeps (``EnvCore``'s ``record_channels``; default
     all): :data:`blf_gym.metrics.METRIC_CHANNELS` is what the records read, a third of the memory.
+    ``noise_seeds`` (one sequence per group, one seed per episode) replaces ``EVAL_SEED_OFFSET + i``
+    as each episode's generator seed (blf-falsify searches over them).
 
     ``model`` None is the proposed law alone (a zero residual, the agent's env set-up otherwise): its
     episodes advance :data:`LAW_HOLD_S` at a time (``EnvCore.hold``), each arm drawing the same noise
@@ -364,7 +367,8 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
         for g, lo, hi in parts:
             rows.append(slice(r, r + hi - lo))
             for i in range(hi - lo):
-                core.rngs[r + i] = np.random.default_rng(EVAL_SEED_OFFSET + lo + i)
+                seed = EVAL_SEED_OFFSET + lo + i if noise_seeds is None else int(noise_seeds[g][lo + i])
+                core.rngs[r + i] = np.random.default_rng(seed)
             r += hi - lo
         core.reset_envs(range(len(scs)), scenarios=scs)
         obs = core.observe()
@@ -459,14 +463,19 @@ def law_env_kwargs(meta: dict[str, Any]) -> dict[str, Any]:
 
 
 def law_reference_groups(groups: Sequence[Sequence[Scenario]], meta: dict[str, Any] | None = None,
-                         threads: int | None = None) -> list[list[EpisodeStats]]:
+                         threads: int | None = None,
+                         noise_seeds: Sequence[Sequence[int]] | None = None) -> list[list[EpisodeStats]]:
     """:func:`law_reference` for several groups of scenarios at once (on the env path, their
-    episodes share batched envs as an agent's do, :func:`agent_group_episodes`)."""
+    episodes share batched envs as an agent's do, :func:`agent_group_episodes`, and draw the same
+    ``noise_seeds``)."""
     if meta is None:
+        if noise_seeds is not None:
+            raise ValueError("law_reference_groups: noise_seeds are for an agent's reference (meta given)")
         return [law_reference(scs, None, threads) for scs in groups]
     out: list[list[EpisodeStats]] = [[] for _ in groups]
     law = {"mode": "residual", "env_kwargs": law_env_kwargs(meta)}
-    for g, tr in agent_group_episodes(None, law, None, groups, threads, channels=METRIC_CHANNELS):
+    for g, tr in agent_group_episodes(None, law, None, groups, threads, channels=METRIC_CHANNELS,
+                                      noise_seeds=noise_seeds):
         out[g].append(episode_stats(tr))
     return out
 
