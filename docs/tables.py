@@ -533,6 +533,36 @@ def ladder_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def ladder_verdict(indent: str = "") -> str:
+    """The README's verdict on learning without a law, from the ladder (docs/ladder/L<level>/
+    report.json): per level, plain PPO's IQM score on the training suite with its interval and its
+    failure rate, beside the floor's, in one sentence."""
+    from blf_gym.levels import LEVELS
+
+    parts, seeds = [], set()
+    for lv in LEVELS:
+        if not (DOCS / "ladder" / f"L{lv.number}" / "report.json").is_file():
+            continue
+        stats = _load(f"ladder/L{lv.number}", "report.json")["statistics"]
+        tag = "" if lv.number == 3 else f"@L{lv.number}"
+
+        def st(policy: str) -> dict | None:
+            return next((x for x in stats if x["policy"] == policy and x["scenario"] == "randomized" + tag), None)
+
+        ppo, floor = st(f"ppo_L{lv.number}"), st("floor")
+        if ppo is None or floor is None:
+            continue
+        seeds.add(len(ppo["seeds"]))
+        parts.append(f"L{lv.number} {_ci(ppo, 'iqm', 3)}, failing {ppo['failure_rate']:.0%} of the episodes "
+                     f"(the floor {floor['iqm']:.3f}, {floor['failure_rate']:.0%})")
+    if not parts:
+        return ""
+    n = "/".join(str(k) for k in sorted(seeds))
+    return (f"{indent}On [the ladder](docs/levels.md#the-ladder), plain PPO with [the audited set-up](docs/plain_audit.md) "
+            f"({n} seeds x 2M steps per level) scores, against the law on each level's training suite: "
+            + "; ".join(parts) + ".\n")
+
+
 FLOOR_ROWS = (("the law (paper gains)", "proposed"), ("floor, 10 ms", "floor"),
               ("floor, 1 ms (same gains)", "floor:control_period=0.001"))
 """The floor table's rows: label, the policy's name in docs/floor/L<level>/results.json."""
@@ -1198,6 +1228,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
 
 if (DOCS / "ladder" / "L3" / "report.json").is_file():  # until the ladder has been scored
     BLOCKS["docs/levels.md"]["ladder"] = ladder_table
+    BLOCKS["README.md"]["ladder-verdict"] = lambda: ladder_verdict("  ")
 if (DOCS / "plain_audit" / "summary.json").is_file():  # until the audit has run, its page says so
     BLOCKS["docs/plain_audit.md"] = {"audit": audit_table}
 
