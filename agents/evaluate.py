@@ -456,8 +456,8 @@ def law_env_kwargs(meta: dict[str, Any]) -> dict[str, Any]:
     observation, residual filter or extras). Two agents with the same ones share one reference."""
     kw = dict(meta["env_kwargs"])
     kw["controller"] = "proposed"
-    # a zero residual is zero at any scale
-    for k in ("privileged", "residual_filter", "observation_extras", "residual_scale"):
+    # a zero residual is zero at any scale (and a plain agent's action scale is not the law's)
+    for k in ("privileged", "residual_filter", "observation_extras", "residual_scale", "action_scale"):
         kw.pop(k, None)
     return scoring_env_kwargs(kw)
 

@@ -61,3 +61,20 @@ def test_scoring_keeps_the_scale_an_agent_trained_with():
 
     kw = scoring_env_kwargs({"controller": None, "action_scale": list(SCALE), "scenario": "randomized"})
     assert kw["action_scale"] == list(SCALE) and "scenario" not in kw
+
+
+def test_the_law_reference_of_a_scaled_plain_agent_is_the_law_alone():
+    """blf-eval scores a plain agent against the law run through the agent's env set-up with a zero
+    residual: a plain agent's action scale has no meaning there, and the reference is the same with
+    or without it (it was refused as a residual-mode action scale before)."""
+    from dataclasses import replace
+
+    from agents.evaluate import law_reference
+    from blf_gym.params import preset
+
+    sc = [replace(preset("paper-0.1hz"), sim=replace(preset("paper-0.1hz").sim, duration=0.5))]
+    meta = {"mode": "plain", "env_kwargs": {"controller": None, "control_period": 0.01}}
+    with_scale = {"mode": "plain", "env_kwargs": {**meta["env_kwargs"], "action_scale": list(SCALE)}}
+    a, b = law_reference(sc, meta)[0], law_reference(sc, with_scale)[0]
+    np.testing.assert_array_equal(a.sq, b.sq)
+    assert a.rmse_deg == b.rmse_deg
