@@ -499,8 +499,8 @@ def audit_table() -> str:
 
 LADDER_ROWS = (("the law (paper gains)", "proposed"), ("the law (tuned gains)", "proposed_tuned"), ("PPC", "ppc"),
                ("floor (10 ms)", "floor"), ("residual PPO over the tuned law (shipped, trained at L3)", "ppo_residual_tuned"),
-               ("plain PPO, 3 seeds x 2M", "ppo_L{level}"), ("plain SAC, 3 seeds x 2M", "sac_L{level}"),
-               ("plain PPO, 20M", "ppo_long_L{level}"))
+               ("plain PPO, 2M steps per seed", "ppo_L{level}"), ("plain SAC, 2M steps per seed", "sac_L{level}"),
+               ("plain PPO, 20M steps", "ppo_long_L{level}"))
 """The ladder's rows: label, the policy's pooled name in docs/ladder/L<level>/report.json ({level}
 filled in); a row a level did not score is left out."""
 
@@ -527,10 +527,16 @@ def ladder_table() -> str:
                 continue
             pre = sum(st[g]["failure_rate"] > 0 for g in ("paper-0.1hz", "paper-0.5hz"))
             seeds = len([x for x in st["randomized"]["seeds"] if x is not None]) or "-"
-            out.append(f"| {level_name(lv.number)} | {label} | {seeds} | {_ci(st['randomized'], 'iqm', 3)} | "
-                       f"{_ci(st['stress'], 'iqm', 3)} | {pre} of 2 / {st['randomized']['failure_rate']:.2f} / "
+            out.append(f"| {level_name(lv.number)} | {label} | {seeds} | {_ci_g(st['randomized'])} | "
+                       f"{_ci_g(st['stress'])} | {pre} of 2 / {st['randomized']['failure_rate']:.2f} / "
                        f"{st['stress']['failure_rate']:.2f} |")
     return "\n".join(out) + "\n"
+
+
+def _ci_g(stat: dict, key: str = "iqm") -> str:
+    """:func:`_ci` in three significant digits (the ladder's scores span 1e-5 to 10)."""
+    lo, hi = stat[f"{key}_ci95" if key != "iqm" else "ci95"]
+    return f"{stat[key]:.3g} [{lo:.3g}, {hi:.3g}]"
 
 
 def ladder_verdict(indent: str = "") -> str:
@@ -553,8 +559,8 @@ def ladder_verdict(indent: str = "") -> str:
         if ppo is None or floor is None:
             continue
         seeds.add(len(ppo["seeds"]))
-        parts.append(f"L{lv.number} {_ci(ppo, 'iqm', 3)}, failing {ppo['failure_rate']:.0%} of the episodes "
-                     f"(the floor {floor['iqm']:.3f}, {floor['failure_rate']:.0%})")
+        parts.append(f"L{lv.number} {_ci_g(ppo)}, failing {ppo['failure_rate']:.0%} of the episodes "
+                     f"(the floor {floor['iqm']:.3g}, {floor['failure_rate']:.0%})")
     if not parts:
         return ""
     n = "/".join(str(k) for k in sorted(seeds))

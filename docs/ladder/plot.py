@@ -37,13 +37,14 @@ def main() -> int:
                            if x["policy"] == policy.format(level=level) and x["scenario"] == group + tag), None)
                 if st is None:
                     continue
+                # a log axis: values below 1e-6 are drawn at 1e-6
+                y, a, b = (max(v, 1e-6) for v in (st["iqm"], *st["ci95"]))
                 xs.append(level + 0.06 * (k - len(ROWS) / 2))
-                ys.append(st["iqm"])
-                lo.append(st["iqm"] - st["ci95"][0])
-                hi.append(st["ci95"][1] - st["iqm"])
+                ys.append(y)
+                lo.append(max(y - a, 0.0))
+                hi.append(max(b - y, 0.0))
             if xs:
-                ax.errorbar(xs, np.maximum(ys, 1e-4), yerr=[lo, hi], marker="o", ms=4, capsize=2, label=label,
-                            lw=1.0)
+                ax.errorbar(xs, ys, yerr=[lo, hi], marker="o", ms=4, capsize=2, label=label, lw=1.0)
         ax.set_yscale("log")
         ax.axhline(1.0, color="k", lw=0.6)
         ax.axhline(0.5, color="k", lw=0.6, ls=":")
