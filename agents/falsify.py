@@ -271,7 +271,9 @@ def search(target: Target, box: dict[str, tuple[float, float]], budget: int, see
         pol, law, stats = target.margins([c[0] for c in cases], [c[1] for c in cases])
         for t, p, rp, rl, st in zip(trials, params, pol, law, stats):
             r = robustness(rp, rl)
-            study.tell(t, r if np.isfinite(r) else -1e6)
+            # a divergence is +-inf: told as +-1e6, so that the law's own divergence (r = +inf) is
+            # the least interesting case to the sampler and the policy's the most
+            study.tell(t, float(np.clip(r, -1e6, 1e6)))
             rec.simulations += 1
             rec.admissible += int(rl > 0)
             rec.best = min(rec.best, r)
