@@ -282,13 +282,18 @@ def law_action_scale(scenario: "str | Scenario" = "randomized", level: int = DEF
 def _law_scale(base: Scenario, suite: str | None, level: int, max_torque: float | None, episodes: int,
                margin: float, seed: int) -> tuple[float, ...]:
     """:func:`law_action_scale` of the suite ``suite`` drawn around ``base`` (None: ``base`` itself)."""
+    # every argument checked before it enters the cache's key (ValueError naming it)
+    o = "law_action_scale"
+    level = check_level(o, level)
+    episodes = check_int(o, "episodes", episodes, lo=1, hi=1024)
+    margin = check_real(o, "margin", margin, lo=1.0)
+    seed = check_int(o, "seed", seed, lo=0)
+    max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
     if max_torque is not None:
         base = replace(base, sim=replace(base.sim, max_torque=float(max_torque)))
-    key = (base, suite, int(level), int(episodes), float(margin), int(seed))
+    key = (base, suite, level, episodes, margin, seed)
     if key in _LAW_SCALES:
         return _LAW_SCALES[key]
-    check_int("law_action_scale", "episodes", episodes, lo=1, hi=1024)
-    check_real("law_action_scale", "margin", margin, lo=1.0)
     rng = np.random.default_rng(seed)
     scs = [apply_level(replace(sample_suite(rng, base, suite) if suite else base, angle_noise_std=0.0), level)
            for _ in range(episodes if suite else 1)]

@@ -210,3 +210,12 @@ def test_a_run_trains_with_the_options_and_is_scored_without_them(tmp_path, monk
     scored.reset(seed=0)
     assert _core(scored).loop.time[0] == 0.0
     scored.close()
+
+
+@pytest.mark.parametrize("bad", [{"episodes": 0}, {"episodes": "x"}, {"margin": 0.5}, {"seed": -1}, {"level": 7},
+                                 {"max_torque": -1.0}])
+def test_law_action_scale_refuses_bad_arguments_by_name(bad):
+    from blf_gym.envcore import law_action_scale
+
+    with pytest.raises(ValueError, match=f"law_action_scale.{next(iter(bad))}"):
+        law_action_scale("paper-0.1hz", **bad)
