@@ -428,16 +428,20 @@ class _ZeroResidual:
 def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     """An agent's metadata with its env's residual filter replaced: ``name`` (e.g. "barrier"), or
     "none" for no filter. The agent's name says so (``+barrier``, ``-filter``); the env kwargs, and
-    so the results' provenance, record it."""
+    so the results' provenance, record it. The look-ahead hand-back's keys (``lookahead``,
+    ``demand``; blf_gym.lookahead) may ride on the filter's: "barrier:handback=0.0033,lookahead=0.35"."""
+    from blf_gym.lookahead import split_lookahead
     from blf_gym.registry import make_controller
 
     if name != "none":
         try:
-            make_controller("proposed").make_filter(name)  # the name and its parameters, checked now
+            # the name and its parameters, checked now
+            make_controller("proposed").make_filter(split_lookahead(name)[0])
         except ValueError as exc:
             raise ValueError(f"--residual-filter must be 'none' or a filter of the proposed law "
                              f"{sorted(make_controller('proposed').filters)}, optionally with parameters "
-                             f"('barrier:handback=0.0033'): {exc}") from None
+                             f"('barrier:handback=0.0033', and lookahead=SECONDS for the look-ahead hand-back): "
+                             f"{exc}") from None
     meta = json.loads(json.dumps(meta, default=str))
     kw = meta["env_kwargs"]
     had = kw.get("residual_filter")

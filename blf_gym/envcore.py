@@ -23,6 +23,7 @@ from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATI
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
 from .levels import DEFAULT_LEVEL, apply_level, check_level
+from .lookahead import lookahead_gate, split_lookahead
 from .scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
                         widen_bounds)
 from .simulate import CHANNELS, ClosedLoop, divergence_message
@@ -106,9 +107,9 @@ ARGUMENTS: tuple[Argument, ...] = (
     Argument("observation_extras", "-", "names of optional entries of blf_gym.observation.OBSERVATION",
              "optional observation entries appended after the others, in the order named"),
     Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law, optionally with '
-             'parameters ("barrier:handback=0.0033")',
+             'parameters ("barrier:handback=0.0033"); in residual mode also lookahead=SECONDS[,demand=D]',
              "a safety filter between the action and the actuator (residual mode: on the residual; plain mode: on "
-             "the torque minus the proposed law's)"),
+             "the torque minus the proposed law's); lookahead: the look-ahead hand-back (blf_gym.lookahead)"),
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
              "a training curriculum's factor on the funnel's width; the benchmark is 1. Also settable between "
              "episodes as env.unwrapped.bound_scale"),
@@ -659,6 +660,15 @@ class EnvCore:
         outputs sit in the loop's last-signal columns."""
         o = self.owner
         self.residual_filter = residual_filter.name if isinstance(residual_filter, ResidualFilter) else residual_filter
+        try:
+            residual_filter, self.lookahead = split_lookahead(residual_filter)
+        except ValueError as exc:
+            raise ValueError(f"{o} {exc}") from None
+        self._gates: dict[Scenario, np.ndarray] = {}
+        self._gate_of: list[np.ndarray | None] = [None] * self.num_envs
+        if self.lookahead is not None and not self.residual:
+            raise ValueError(f"{o} residual_filter={self.residual_filter!r}: the look-ahead hand-back withholds a "
+                             "residual; it needs residual mode (a controller), not plain mode")
         if residual_filter is not None and not self.residual:
             # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
             inner, plain = make_controller("proposed"), True
@@ -796,6 +806,9 @@ class EnvCore:
                                 start_steps=None if scenarios is not None else self._start_steps(idx, scs))
         if self.weights.relative:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
+        if self.lookahead is not None:
+            for i, sc in zip(idx, scs):
+                self._gate_of[i] = self.lookahead_gate(sc)
         if self._score_w > 0:
             self._start_law(idx, scs)
         if self._record is not None:
@@ -848,6 +861,31 @@ class EnvCore:
         for k, sc in enumerate(keys):
             mean[k], steps[k] = done[sc] if sc in done else self._law_cache[sc]
         return mean, steps
+
+    def lookahead_gate(self, scenario: Scenario) -> np.ndarray:
+        """Which control periods of ``scenario`` the look-ahead hand-back gives to the law alone
+        (:func:`blf_gym.lookahead.lookahead_gate`, indexed by the period's start time over the
+        control period), kept for the last 64 distinct references and bounds."""
+        key = replace(scenario, name="", angle_noise_std=0.0, initial_error=(0.0,) * self.n)
+        gate = self._gates.get(key)
+        if gate is None:
+            gate = lookahead_gate(scenario, self.control_period, self.lookahead)
+            if len(self._gates) >= 64:
+                self._gates.pop(next(iter(self._gates)))
+            self._gates[key] = gate
+        return gate
+
+    def handed_back(self) -> np.ndarray:
+        """(N,) bool: whether the look-ahead hand-back withholds each arm's residual over the period
+        that starts now (all False without ``lookahead``)."""
+        out = np.zeros(self.num_envs, dtype=bool)
+        if self.lookahead is None:
+            return out
+        k = np.rint(np.asarray(self.loop.time, dtype=float) / self.control_period).astype(np.int64)
+        for i, gate in enumerate(self._gate_of):
+            if gate is not None:
+                out[i] = gate[min(max(int(k[i]), 0), len(gate) - 1)]
+        return out
 
     def with_episode_length(self, spec: Any) -> Any:
         """``spec`` (an EnvSpec, or None) with ``max_episode_steps`` set to this env's episode length
@@ -982,6 +1020,10 @@ class EnvCore:
         a = self.check_actions(actions)
         N = self.num_envs
         residual = self._torque(a)
+        gated = None
+        if self.lookahead is not None:
+            gated = self.handed_back()
+            residual[gated] = 0.0
         noise, obs_noise = self._draw_noise(1, skip)
         rec = self._record
         _, nrec, status = self.loop.advance(
@@ -1041,6 +1083,8 @@ class EnvCore:
         }
         if self._filter_slices:
             info["filter_outputs"] = {name: last[:, s] for name, s in self._filter_slices}
+        if gated is not None:
+            info["lookahead_handback"] = gated
         if flags & 2:
             info["diverged_message"] = np.array(
                 [divergence_message(int(d), float(t), self.sim.dt, self.sim.unstable_steps, self.controller.name)

@@ -1,0 +1,141 @@
+"""The look-ahead hand-back (blf_gym/lookahead.py; docs/model.md section 11): its demand against
+finite differences of the reference, its schedule against a brute-force reading of the same
+definition, the env withholding the residual exactly on the scheduled periods (the torque is then
+the law's), the decay it rests on (the law alone forgets a difference of state a hundredfold within
+the horizon), the refusals, and its effect on the known counterexample of the certified agent."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+import blf_gym  # noqa: F401
+from blf_gym.bounds import error_bounds
+from blf_gym.lookahead import (DEFAULT_DEMAND, DEFAULT_HORIZON, LookaheadParams, lookahead_gate, reference_demand,
+                               split_lookahead)
+from blf_gym.params import preset
+from blf_gym.reference import joint_reference
+from blf_gym.scenarios import apply_variations, sample_suite
+from blf_gym.simulate import simulate_batch
+
+FAST = apply_variations(preset("paper-0.1hz", duration=4.0), {"frequency": 0.5})
+
+
+def test_the_demand_is_the_references_acceleration_per_radian_of_the_narrower_bound():
+    # second differences of the reference's angles, not its analytic acceleration
+    h = 1e-4
+    t = np.linspace(0.2, 3.9, 200)
+    q = [np.asarray(joint_reference(t + k * h, FAST)[0]) for k in (-1, 0, 1)]
+    qdd = (q[0] - 2 * q[1] + q[2]) / h**2
+    ka, kb = error_bounds(t, FAST.bounds)
+    want = np.abs(qdd).max(axis=1) / np.minimum(ka, kb)
+    np.testing.assert_allclose(reference_demand(t, FAST), want, rtol=2e-3, atol=1e-3)
+
+
+def test_the_schedule_is_the_definition_read_period_by_period():
+    p = LookaheadParams(horizon=0.2, demand=DEFAULT_DEMAND)
+    T = 0.01
+    gate = lookahead_gate(FAST, T, p)
+    assert gate.shape == (401,) and gate.any() and not gate.all()
+    for k in range(0, 401, 7):
+        ts = np.arange(k * T - p.horizon, (k + 1) * T + p.horizon + 1e-9, 5e-4)
+        ts = ts[ts >= 0.0]
+        assert gate[k] == bool((reference_demand(ts, FAST) >= p.demand).any()), k
+    # a longer horizon hands back a superset of the periods; the slow preset is never handed back
+    assert (lookahead_gate(FAST, T, LookaheadParams(horizon=0.5)) >= gate).all()
+    assert not lookahead_gate(preset("paper-0.1hz"), T, LookaheadParams()).any()
+
+
+def test_the_env_withholds_the_residual_exactly_on_the_scheduled_periods():
+    env = gym.make("PlanarBLF-v0", controller="proposed", scenario=FAST, residual_scale=2.0,
+                   residual_filter="barrier:lookahead=0.35")
+    env.reset(seed=0)
+    gate = lookahead_gate(FAST, 0.01, LookaheadParams(horizon=0.35))
+    seen = []
+    for k in range(300):
+        _, _, term, trunc, info = env.step(np.full(3, 0.5, dtype=np.float32))
+        back = bool(info["lookahead_handback"])
+        seen.append(back)
+        assert back == gate[k], k
+        r = info["u"] - info["u_law"]
+        if back:
+            assert np.array_equal(info["u"], info["u_law"]), k  # the law alone, to the bit
+            assert float(info["filter_outputs"]["theta"][0]) == 0.0 or np.all(r == 0.0)
+        if term or trunc:
+            break
+    assert any(seen) and not all(seen)
+    env.close()
+
+
+def test_the_vector_env_schedules_each_arm_from_its_own_scenario():
+    venv = gym.make_vec("PlanarBLF-v0", num_envs=2, controller="proposed", scenario="randomized",
+                        residual_filter="barrier:handback=0.0033,lookahead=0.35", duration=5.0)
+    venv.reset(seed=3)
+    core = venv.unwrapped.core
+    for i in range(2):
+        want = lookahead_gate(core.scenarios[i], core.control_period, core.lookahead)
+        assert np.array_equal(core._gate_of[i], want)
+    venv.close()
+
+
+def test_the_law_alone_forgets_a_difference_of_state_within_the_horizon():
+    # the decay the rule rests on, re-measured on two training-suite draws the derivation also used
+    scs = [replace(sample_suite(np.random.default_rng(s)), sim=replace(preset("paper-0.1hz").sim, duration=1.0))
+           for s in (1, 3)]
+    delta = 0.01
+    runs = simulate_batch([replace(sc, initial_error=(0.0,) * 3) for sc in scs]
+                          + [replace(sc, initial_error=(delta,) * 3) for sc in scs], "proposed")
+    for a, b in zip(runs[:2], runs[2:]):
+        t = np.asarray(a.signals["t"])
+        d = np.abs(np.asarray(a.signals["e1"]) - np.asarray(b.signals["e1"])).max(axis=1)
+        assert d[0] > 0.5 * delta
+        assert d[np.searchsorted(t, DEFAULT_HORIZON)] < 0.01 * delta
+
+
+def test_refusals_name_the_field():
+    assert split_lookahead("barrier") == ("barrier", None)
+    assert split_lookahead("barrier:handback=0.0033,lookahead=0.3") == (
+        "barrier:handback=0.0033", LookaheadParams(horizon=0.3))
+    assert split_lookahead("cbf:lookahead=0.5,demand=100")[1] == LookaheadParams(0.5, 100.0)
+    for bad, field in (("barrier:lookahead=0", "horizon"), ("barrier:lookahead=nan", "horizon"),
+                       ("barrier:lookahead=9", "horizon"), ("barrier:lookahead=0.3,demand=-1", "demand")):
+        with pytest.raises(ValueError, match=f"LookaheadParams.{field}"):
+            split_lookahead(bad)
+    with pytest.raises(ValueError, match="needs 'lookahead=SECONDS'"):
+        split_lookahead("barrier:demand=100")
+    with pytest.raises(ValueError, match="not key=number"):
+        split_lookahead("barrier:lookahead=soon")
+    with pytest.raises(ValueError, match="residual mode"):
+        gym.make("PlanarBLF-v0", residual_filter="barrier:lookahead=0.3")
+    with pytest.raises(ValueError, match="period must be"):
+        lookahead_gate(FAST, 0.0, LookaheadParams())
+
+
+@pytest.mark.slow
+def test_it_brings_the_known_counterexample_to_the_laws_own_trajectory():
+    # the certified agent's documented break (docs/certificate.md): 0.5 Hz, 60 N from 2 s. Judged
+    # here, never used to choose the horizon or the threshold (docs/fallback/derive.py reads only
+    # the training suite). Handed back from 2.53 s, the agent's error converges on the law alone's:
+    # through the fold at 3 s its distance is a seventh of what it was at the hand-back (the fold
+    # itself amplifies differences, so not the hundredth measured from a start on the reference),
+    # and under a tenth of the distance without the look-ahead
+    from agents.evaluate import agent_group_episodes, law_env_kwargs, with_filter
+    from agents.loading import load_agent
+
+    sc = apply_variations(preset("paper-0.1hz", duration=3.5), {"frequency": 0.5, "force": 60.0, "force_onset": 2.0})
+    model, meta, norm = load_agent("agents/pretrained/ppo_residual_certified")
+    e1 = {}
+    for key, m, mod in (("plain", with_filter(meta, "barrier:handback=0.0033"), model),
+                        ("ahead", with_filter(meta, "barrier:handback=0.0033,lookahead=0.35"), model),
+                        ("law", {"mode": "residual", "env_kwargs": law_env_kwargs(meta)}, None)):
+        for _, tr in agent_group_episodes(mod, m, norm if mod is not None else None, [[sc]]):
+            t = np.asarray(tr.signals["t"])
+            e1[key] = np.asarray(tr.signals["e1"])
+    fold = (t >= 2.9) & (t <= 3.1)
+    start = np.searchsorted(t, 2.5)
+    gap = {k: np.abs(e1[k] - e1["law"]) for k in ("plain", "ahead")}
+    assert gap["ahead"][fold].max() < 0.2 * gap["ahead"][start].max()
+    assert gap["ahead"][fold].max() < 0.1 * gap["plain"][fold].max()
