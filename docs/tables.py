@@ -1186,6 +1186,45 @@ MEASURED_BLOCKS = (
 """The benchmark tables: page, marker name, the files under ``docs/speed/`` it needs, the function."""
 
 
+FALSIFY_ROWS = (
+    ("PPO residual over the law, no filter", "residual"),
+    ("certified residual, `barrier`", "barrier"),
+    ("certified residual, `barrier:handback=0.0033` (shipped)", "barrier_handback"),
+    ("certified residual, `barrier:handback=0.0033,lookahead=0.35`", "barrier_handback_lookahead"),
+    ("certified residual, `cbf:handback=0.0033`", "cbf_handback"),
+    ("certified residual, `cbf:handback=0.0033,lookahead=0.35`", "cbf_handback_lookahead"),
+    ("PPC", "ppc"),
+    ("funnel control", "funnel"),
+    ("nonlinear MPC", "nmpc"),
+)
+"""The falsifier's rows (docs/falsify/run.sh): label, folder under docs/falsify."""
+
+
+def falsify_table() -> str:
+    """blf-falsify's reports (issue 52, items 3-4), one row per policy, from
+    ``docs/falsify/<row>/falsify.json``: the share of searches that found a counterexample, the
+    counterexamples, the simulations to each search's first, the lowest robustness per search
+    (degrees; negative is a counterexample) and the wall clock. Rows not run yet are left out."""
+    import json
+
+    out = ["| policy | searches x simulations | admissible (the law keeps every bound) | falsification rate | "
+           "counterexamples | simulations to the first, per search | lowest robustness per search (deg) | "
+           "wall clock (min) |", "|---|---|---|---|---|---|---|---|"]
+    for label, row in FALSIFY_ROWS:
+        f = DOCS / "falsify" / row / "falsify.json"
+        if not f.is_file():
+            continue
+        r = json.loads(f.read_text())
+        runs = r["runs"]
+        first = ", ".join("-" if x["first_counterexample_at"] is None else str(x["first_counterexample_at"])
+                          for x in runs)
+        low = ", ".join(f"{x['lowest_robustness_deg']:.3g}" for x in runs)
+        out.append(f"| {label} | {r['searches']} x {r['budget_per_search']} | "
+                   f"{sum(x['admissible'] for x in runs)} | {r['falsification_rate']:.2f} | {r['counterexamples']} | "
+                   f"{first} | {low} | {r['wall_s'] / 60:.0f} |")
+    return "\n".join(out) + "\n"
+
+
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/"), "verdict": lambda: verdict_table("docs/"),
                   "best-verdict": lambda: best_verdict("  ")},
@@ -1235,6 +1274,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
 if (DOCS / "ladder" / "L3" / "report.json").is_file():  # until the ladder has been scored
     BLOCKS["docs/levels.md"]["ladder"] = ladder_table
     BLOCKS["README.md"]["ladder-verdict"] = lambda: ladder_verdict("  ")
+if any((DOCS / "falsify" / row / "falsify.json").is_file() for _, row in FALSIFY_ROWS):  # until a row has run
+    BLOCKS["docs/certificate.md"]["falsify"] = falsify_table
 if (DOCS / "plain_audit" / "summary.json").is_file():  # until the audit has run, its page says so
     BLOCKS["docs/plain_audit.md"] = {"audit": audit_table}
 

@@ -138,3 +138,13 @@ def test_the_command_writes_its_report(tmp_path):
     rep = json.loads((tmp_path / "falsify.json").read_text())
     assert rep["simulations"] == 4 and rep["counterexamples"] == 0 and "git_commit" in rep["provenance"]
     assert main(["--controller", "nope", "--budget", "4"]) == 2
+
+
+def test_a_network_target_runs_torch_on_one_thread():
+    # as blf-eval: a batch of 16 rows gains nothing from more threads, and idle ones beside another
+    # job made each network call about 15 times slower (agents/falsify.py, Target.from_args)
+    import torch
+
+    torch.set_num_threads(2)
+    Target.from_args(policy="floor")
+    assert torch.get_num_threads() == 1
