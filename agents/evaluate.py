@@ -535,7 +535,8 @@ def _parser() -> argparse.ArgumentParser:
                         "its factory (floor:control_period=0.001) (default: none; they can be slow)")
     p.add_argument("--residual-filter", default=None, metavar="NAME",
                    help="run every agent through this residual filter of the proposed law (barrier or cbf, with "
-                        "parameters as barrier:handback=0.0033), its name gaining +NAME, or 'none' to run every agent "
+                        "parameters as barrier:handback=0.0033, and lookahead=0.35 for the look-ahead hand-back), its name "
+                        "gaining +NAME, or 'none' to run every agent "
                         "without one (default: each agent's own, from its metadata)")
     p.add_argument("--scenarios", nargs="*", default=sorted(PRESETS), metavar="NAME",
                    help=f"paper presets (default: {' '.join(sorted(PRESETS))}; none with an empty list)")

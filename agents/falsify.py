@@ -357,7 +357,8 @@ def _parser() -> argparse.ArgumentParser:
     who.add_argument("--policy", metavar="NAME", help="a registered policy (NAME or NAME:key=value,...)")
     who.add_argument("--controller", metavar="NAME", help="a registered controller, on the inner path")
     p.add_argument("--residual-filter", metavar="NAME", help="the agent through this filter of the proposed law "
-                   "(barrier, cbf, barrier:handback=0.0033) or 'none' (default: the agent's own)")
+                   "(barrier, cbf, barrier:handback=0.0033, barrier:handback=0.0033,lookahead=0.35) or 'none' "
+                   "(default: the agent's own)")
     p.add_argument("--ranges", metavar="JSON", help="a JSON file of knob -> [low, high] to search instead of "
                    "SAFE_RANGES (default: blf_gym.scenarios.SAFE_RANGES)")
     p.add_argument("--budget", type=int, default=500, help="simulations per search (default 500)")

@@ -4,6 +4,7 @@ with the audited set-up on every difficulty level, three seeds each, resumable a
     python docs/ladder/run.py --stage ppo            # PPO, levels 0-3, seeds 0-2, 2M agent steps each
     python docs/ladder/run.py --stage sac            # SAC, levels 0 and 3, seeds 0-2, 2M steps each
     python docs/ladder/run.py --stage long           # the best set-up, 20M steps on the full benchmark
+    python docs/ladder/run.py --stage bench          # PPO at levels 0 and 1 with the full benchmark's reward
     python docs/ladder/run.py --keep                 # keep every run in docs/ladder/runs (at each commit)
     python docs/ladder/run.py --restore              # bring kept runs back into --out, to resume them
 
@@ -37,16 +38,26 @@ class Run(NamedTuple):
     level: int
     seed: int
     steps: int
+    sets: tuple[str, ...] = ()
 
 
 PPO_CONFIG = "agents/configs/ppo_plain_ladder.yaml"
 SAC_CONFIG = "agents/configs/sac_plain_ladder.yaml"
+
+BENCH_REWARD = ("env.reward_weights.tracking=100.0", "env.reward_weights.alive=1.0",
+                "env.reward_weights.violation=1500000.0")
+"""Levels 0 and 1 widen the bounds tenfold, so the shaped reward's tracking term, (e1 / bound)^2, is a
+hundred times flatter there than on the full benchmark. These weights give back the full benchmark's
+reward as a function of the error: 100 (e1 / (10 k))^2 = (e1 / k)^2 against an alive bonus of 1. The
+bonus is then below the largest tracking cost inside the wide bounds (100), so the env asks that a
+violation cost more than the rest of any episode could: (100 - 1) x 15,000 steps at 2 ms, 1.485M."""
 
 STAGES: dict[str, list[Run]] = {
     # seed-major, so that an interrupted stage has every level at its first seeds
     "ppo": [Run(f"ppo_L{lv}_s{s}", "ppo", PPO_CONFIG, lv, s, 2_000_000) for s in SEEDS for lv in (0, 1, 2, 3)],
     "sac": [Run(f"sac_L{lv}_s{s}", "sbx_sac", SAC_CONFIG, lv, s, 2_000_000) for s in SEEDS for lv in (0, 3)],
     "long": [Run("ppo_long_L3_s0", "ppo", PPO_CONFIG, 3, 0, 20_000_000)],
+    "bench": [Run(f"ppo_bench_L{lv}_s{s}", "ppo", PPO_CONFIG, lv, s, 2_000_000, BENCH_REWARD) for s in SEEDS for lv in (0, 1)],
 }
 """Every ladder run, by stage: its folder name, algorithm, config, level, seed and agent steps."""
 
@@ -72,6 +83,8 @@ def _train(r: Run, out: Path) -> str:
         cmd.append("--resume")
     else:
         cmd += ["--set", f"env.level={r.level}"]
+        for kv in r.sets:
+            cmd += ["--set", kv]
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     with open(out / f"{r.name}.log", "a") as log:
