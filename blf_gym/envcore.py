@@ -162,6 +162,8 @@ INFO_KEYS: tuple[InfoKey, ...] = (
     InfoKey("truncation_reason", "-", "step", '"time_limit" or None'),
     InfoKey("filter_outputs", "-", "step, with residual_filter",
             "the filter's outputs by name (the filtered residual, theta, the budget, its monitors)"),
+    InfoKey("lookahead_handback", "-", "step, with lookahead in residual_filter",
+            "True when the look-ahead hand-back withheld the residual over this step (blf_gym.lookahead)"),
     InfoKey("qd", "rad/s", "reset and step, with privileged=True", "the true joint velocities"),
     InfoKey("diverged_message", "-", "the step that diverged", "what diverged and when"),
     InfoKey("episode_metrics", "-", "the episode's last step",
