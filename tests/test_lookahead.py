@@ -139,3 +139,18 @@ def test_it_brings_the_known_counterexample_to_the_laws_own_trajectory():
     gap = {k: np.abs(e1[k] - e1["law"]) for k in ("plain", "ahead")}
     assert gap["ahead"][fold].max() < 0.2 * gap["ahead"][start].max()
     assert gap["ahead"][fold].max() < 0.1 * gap["plain"][fold].max()
+
+
+def test_an_episode_started_along_the_reference_reads_the_schedule_at_its_own_time():
+    # start_time (a training option) puts the arm at t0 on the reference: the hand-back must read
+    # the period of t0, not period 0
+    env = gym.make("PlanarBLF-v0", controller="proposed", scenario=FAST, residual_filter="barrier:lookahead=0.35",
+                   start_time=2.6, reward_weights={"tracking": 1.0})
+    env.reset(seed=0)
+    gate = lookahead_gate(FAST, 0.01, LookaheadParams(horizon=0.35))
+    k0 = 260
+    assert gate[k0] and not gate[0]
+    for k in range(5):
+        _, _, _, _, info = env.step(np.zeros(3, dtype=np.float32))
+        assert bool(info["lookahead_handback"]) == gate[k0 + k]
+    env.close()
