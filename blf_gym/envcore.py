@@ -23,7 +23,7 @@ from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATI
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
 from .levels import DEFAULT_LEVEL, apply_level, check_level
-from .lookahead import lookahead_gate, split_lookahead
+from .lookahead import design_scenario, lookahead_gate, predicted_gates, split_lookahead
 from .scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
                         widen_bounds)
 from .simulate import CHANNELS, ClosedLoop, divergence_message
@@ -809,8 +809,8 @@ class EnvCore:
         if self.weights.relative:
             self._law_e2[list(idx)], self._law_steps[list(idx)] = self.law_level(scs)
         if self.lookahead is not None:
-            for i, sc in zip(idx, scs):
-                self._gate_of[i] = self.lookahead_gate(sc)
+            for i, gate in zip(idx, self.lookahead_gates(scs)):
+                self._gate_of[i] = gate
         if self._score_w > 0:
             self._start_law(idx, scs)
         if self._record is not None:
@@ -864,18 +864,24 @@ class EnvCore:
             mean[k], steps[k] = done[sc] if sc in done else self._law_cache[sc]
         return mean, steps
 
-    def lookahead_gate(self, scenario: Scenario) -> np.ndarray:
-        """Which control periods of ``scenario`` the look-ahead hand-back gives to the law alone
-        (:func:`blf_gym.lookahead.lookahead_gate`, indexed by the period's start time over the
-        control period), kept for the last 64 distinct references and bounds."""
-        key = replace(scenario, name="", angle_noise_std=0.0, initial_error=(0.0,) * self.n)
-        gate = self._gates.get(key)
-        if gate is None:
-            gate = lookahead_gate(scenario, self.control_period, self.lookahead)
-            if len(self._gates) >= 64:
-                self._gates.pop(next(iter(self._gates)))
-            self._gates[key] = gate
-        return gate
+    def lookahead_gates(self, scenarios: Sequence[Scenario]) -> list[np.ndarray]:
+        """Which control periods of each scenario the look-ahead hand-back gives to the law alone
+        (blf_gym.lookahead: the demand rule, or the predictive rule's law runs batched over the
+        scenarios not seen before), indexed by the period's start time over the control period;
+        kept for the last 64 (or twice the arms) distinct scenarios as the rule sees them (design_scenario)."""
+        keys = [replace(design_scenario(sc), name="") for sc in scenarios]
+        todo = {k: sc for k, sc in zip(keys, scenarios) if k not in self._gates}
+        if todo:
+            if self.lookahead.predict is not None:
+                made = predicted_gates(list(todo.values()), self.controller, self.observer, self.control_period,
+                                       self.lookahead)
+            else:
+                made = [lookahead_gate(sc, self.control_period, self.lookahead) for sc in todo.values()]
+            for k, gate in zip(todo, made):
+                while len(self._gates) >= max(64, 2 * self.num_envs):
+                    self._gates.pop(next(iter(self._gates)))
+                self._gates[k] = gate
+        return [self._gates[k] for k in keys]
 
     def handed_back(self) -> np.ndarray:
         """(N,) bool: whether the look-ahead hand-back withholds each arm's residual over the period

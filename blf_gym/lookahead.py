@@ -20,24 +20,35 @@ time ``T`` included). The default threshold is the smallest demand that, on 80 d
 suite, came within ``horizon`` before a moment where the law alone used more than half of a
 bound's width, away from a force step (``docs/fallback/derive.py``; no held-out suite is read).
 
-It is a schedule of the scenario's known signals, computed once per episode (a few ms) and applied
-to the residual before the filter, so every env path (single, vector, evaluation, falsification)
-shares it. It does not foresee what is unknown in advance (a force step's onset, a payload): the
-innovation hand-back (``handback``) answers those after the fact.
+**The predictive rule** (``predict=M``, in place of the demand): the law alone is run ahead, once
+per episode, on the design plant (the scenario's reference and bounds, the paper's friction, dead
+zone and payload, no external force, no noise: what is known before the episode), and a period is
+handed back when that run's smallest normalized margin in the same window falls below ``M`` (the
+barrier filter's m1, 0.5, by default: the law predicted to use more than half of a bound). It hands
+back only where the law is predicted to be stressed, not at every fast stretch of the reference;
+it costs one law episode per new scenario (about 0.3 s for 30 s), batched over the arms reset
+together and cached.
+
+Either rule is a schedule of what is known in advance, computed once per episode and applied to
+the residual before the filter, so every env path (single, vector, evaluation, falsification)
+shares it. It does not foresee what is unknown (a force step's onset, the true friction, a
+payload): the innovation hand-back (``handback``) answers those after the fact.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
 from .bounds import error_bounds
-from .params import Scenario
+from .params import ArmParams, DeadZoneParams, FrictionParams, Scenario
 from .reference import joint_reference
 
-__all__ = ["LookaheadParams", "LOOKAHEAD_KEYS", "reference_demand", "lookahead_gate", "split_lookahead"]
+__all__ = ["LookaheadParams", "LOOKAHEAD_KEYS", "reference_demand", "lookahead_gate", "split_lookahead",
+           "design_scenario", "margin_gate", "predicted_gates"]
 
 DEFAULT_HORIZON = 0.35
 """s: the law alone shrank a difference of state a hundredfold within 0.23-0.34 s on 16 draws of the
@@ -47,10 +58,11 @@ DEFAULT_DEMAND = 930.0
 """1/s^2: the smallest demand the training suite tied to a moment where the law alone used more than
 half a bound's width (docs/fallback/derive.json, ``demand_star``, 932.1, rounded down)."""
 
-LOOKAHEAD_KEYS = ("lookahead", "demand")
+LOOKAHEAD_KEYS = ("lookahead", "demand", "predict")
 """The keys of a residual filter's spec that configure this hand-back rather than the filter:
-``"barrier:handback=0.0033,lookahead=0.3"`` (``lookahead`` the horizon in s, ``demand`` the
-threshold in 1/s^2, default :data:`DEFAULT_DEMAND`)."""
+``"barrier:handback=0.0033,lookahead=0.35"`` (``lookahead`` the horizon in s, ``demand`` the
+threshold in 1/s^2, default :data:`DEFAULT_DEMAND`; or ``predict=0.5``, the predictive rule's
+margin)."""
 
 GRID = 1e-3
 """s: the demand is sampled on this grid (the trajectories' own sample period)."""
@@ -64,9 +76,15 @@ class LookaheadParams:
     """s, > 0 and at most 5: how long before and after a demanding moment the law acts alone."""
     demand: float = DEFAULT_DEMAND
     """1/s^2, > 0: the reference demand at and above which the law acts alone."""
+    predict: float | None = None
+    """None (the demand rule), or the predictive rule's normalized margin in (0, 1): the law acts alone
+    where the law alone on the design plant is predicted to come closer than this to a bound."""
 
     def __post_init__(self) -> None:
-        for name, lo, hi, unit in (("horizon", 0.0, 5.0, "s"), ("demand", 0.0, math.inf, "1/s^2")):
+        checks = [("horizon", 0.0, 5.0, "s"), ("demand", 0.0, math.inf, "1/s^2")]
+        if self.predict is not None:
+            checks.append(("predict", 0.0, 1.0 - 1e-12, "(a normalized margin, below 1)"))
+        for name, lo, hi, unit in checks:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo < v <= hi:
                 raise ValueError(f"LookaheadParams.{name} must be a number in ({lo:g}, {hi:g}] {unit}, got {v!r}")
@@ -95,8 +113,12 @@ def split_lookahead(spec: "str | None") -> "tuple[str | None, LookaheadParams | 
     if "lookahead" not in ours:
         raise ValueError(f"residual_filter {spec!r}: 'demand' sets the look-ahead hand-back's threshold and needs "
                          "'lookahead=SECONDS' beside it")
+    if "demand" in ours and "predict" in ours:
+        raise ValueError(f"residual_filter {spec!r}: give 'demand' (the demand rule) or 'predict' (the predictive "
+                         "rule), not both")
     rest_spec = name + (":" + ",".join(keep) if keep else "")
-    return rest_spec, LookaheadParams(horizon=ours["lookahead"], demand=ours.get("demand", DEFAULT_DEMAND))
+    return rest_spec, LookaheadParams(horizon=ours["lookahead"], demand=ours.get("demand", DEFAULT_DEMAND),
+                                      predict=ours.get("predict"))
 
 
 def reference_demand(t: "np.ndarray | float", scenario: Scenario) -> np.ndarray:
@@ -124,3 +146,50 @@ def lookahead_gate(scenario: Scenario, period: float, params: LookaheadParams) -
     first = np.searchsorted(t_hot, lo - 1e-12, side="left")
     return (first < len(t_hot)) & (t_hot[np.minimum(first, max(len(t_hot) - 1, 0))] <= hi + 1e-12) \
         if len(t_hot) else np.zeros(steps, dtype=bool)
+
+
+def design_scenario(scenario: Scenario) -> Scenario:
+    """What is known of ``scenario`` before its episode: its reference, bounds, duration and initial
+    error, on the paper's plant (its friction, dead zone and arm with the paper's payload), with no
+    external force and no noise. The predictive rule runs the law alone on it."""
+    arm = ArmParams() if scenario.arm.n_links == ArmParams().n_links else scenario.arm
+    force = replace(scenario.force, wrench=(0.0,) * len(scenario.force.wrench))
+    return replace(scenario, name=f"{scenario.name}:design", arm=arm, friction=FrictionParams(),
+                   dead_zone=DeadZoneParams(), force=force, angle_noise_std=0.0)
+
+
+def margin_gate(t: np.ndarray, margin: np.ndarray, period: float, steps: int, horizon: float,
+                threshold: float) -> np.ndarray:
+    """Whether each of ``steps`` control periods is handed back: the smallest of ``margin`` (the law's
+    normalized margin over joints, sampled at ``t``) in ``[t_k - horizon, t_k + period + horizon]``
+    is below ``threshold``. Samples past the run's end count as its last."""
+    low = np.asarray(t)[np.asarray(margin) < threshold]
+    lo = np.arange(steps) * period - horizon
+    hi = np.arange(steps) * period + period + horizon
+    if not len(low):
+        return np.zeros(steps, dtype=bool)
+    first = np.searchsorted(low, lo - 1e-12, side="left")
+    return (first < len(low)) & (low[np.minimum(first, len(low) - 1)] <= hi + 1e-12)
+
+
+def predicted_gates(scenarios: "list[Scenario]", controller: Any, observer: Any, period: float,
+                    params: LookaheadParams) -> list[np.ndarray]:
+    """The predictive rule's schedule for each scenario (:func:`design_scenario`, the law alone, then
+    :func:`margin_gate` at ``params.predict``), the law's runs batched in one kernel call. A run that
+    diverges hands back everything from its start."""
+    from .simulate import simulate_batch  # the kernel: imported when a predictive rule is asked for
+
+    runs = simulate_batch([design_scenario(sc) for sc in scenarios], controller, observer)
+    out = []
+    for sc, tr in zip(scenarios, runs):
+        steps = int(math.ceil(sc.sim.duration / period - 1e-9)) + 1
+        if tr.diverged:
+            out.append(np.ones(steps, dtype=bool))
+            continue
+        s = tr.signals
+        tt = np.asarray(s["t"])
+        e = np.asarray(s["e1"]).reshape(len(tt), -1)
+        ka, kb = np.asarray(s["k_a"]).reshape(len(tt), -1), np.asarray(s["k_b"]).reshape(len(tt), -1)
+        m = np.where(e >= 0.0, (ka - e) / ka, (kb + e) / kb).min(axis=1)
+        out.append(margin_gate(tt, m, period, steps, params.horizon, params.predict))
+    return out

@@ -1191,6 +1191,7 @@ FALSIFY_ROWS = (
     ("certified residual, `barrier`", "barrier"),
     ("certified residual, `barrier:handback=0.0033` (shipped)", "barrier_handback"),
     ("certified residual, `barrier:handback=0.0033,lookahead=0.35`", "barrier_handback_lookahead"),
+    ("certified residual, `barrier:handback=0.0033,lookahead=0.35,predict=0.5`", "barrier_handback_predict"),
     ("certified residual, `cbf:handback=0.0033`", "cbf_handback"),
     ("certified residual, `cbf:handback=0.0033,lookahead=0.35`", "cbf_handback_lookahead"),
     ("PPC", "ppc"),

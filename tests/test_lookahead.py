@@ -154,3 +154,45 @@ def test_an_episode_started_along_the_reference_reads_the_schedule_at_its_own_ti
         _, _, _, _, info = env.step(np.zeros(3, dtype=np.float32))
         assert bool(info["lookahead_handback"]) == gate[k0 + k]
     env.close()
+
+
+def test_the_predictive_rule_hands_back_where_the_law_alone_on_the_design_plant_comes_close():
+    from blf_gym.lookahead import design_scenario, margin_gate, predicted_gates
+
+    noisy = apply_variations(FAST, {"force": 60.0, "force_onset": 1.0, "friction_scale": 2.0, "payload": 0.3,
+                                    "angle_noise_std": 1e-4})
+    d = design_scenario(noisy)
+    # what is known in advance stays, what is not is the paper's (or none)
+    assert d.reference == noisy.reference and d.bounds == noisy.bounds and d.sim == noisy.sim
+    assert d.friction == preset("paper-0.1hz").friction and d.dead_zone == preset("paper-0.1hz").dead_zone
+    assert d.arm == preset("paper-0.1hz").arm and not any(d.force.wrench) and d.angle_noise_std == 0.0
+    # the window rule, against a brute-force reading on a synthetic margin
+    t = np.arange(0.0, 2.0, 1e-3)
+    m = 1.0 - 0.8 * np.exp(-((t - 1.0) / 0.05) ** 2)
+    g = margin_gate(t, m, 0.01, 201, 0.2, 0.5)
+    for k in range(201):
+        w = (t >= k * 0.01 - 0.2 - 1e-12) & (t <= k * 0.01 + 0.01 + 0.2 + 1e-12)
+        assert g[k] == bool((m[w] < 0.5).any()), k
+    # the schedule, against the law's own run on the design plant read here
+    p = LookaheadParams(horizon=0.35, predict=0.5)
+    gate = predicted_gates([noisy], "proposed", "leso", 0.01, p)[0]
+    run = simulate_batch([d], "proposed")[0].signals
+    e, ka, kb = (np.asarray(run[k]).reshape(len(run["t"]), -1) for k in ("e1", "k_a", "k_b"))
+    low = np.asarray(run["t"])[np.where(e >= 0, (ka - e) / ka, (kb + e) / kb).min(axis=1) < 0.5]
+    assert low.size and gate.any() and not gate.all()
+    for k in range(len(gate)):
+        assert gate[k] == bool(((low >= k * 0.01 - 0.35 - 1e-9) & (low <= k * 0.01 + 0.36 + 1e-9)).any()), k
+    # and the env follows it, period by period
+    env = gym.make("PlanarBLF-v0", controller="proposed", scenario=noisy,
+                   residual_filter="barrier:handback=0.0033,lookahead=0.35,predict=0.5")
+    env.reset(seed=1)
+    for k in range(200):
+        _, _, term, trunc, info = env.step(np.full(3, 0.3, dtype=np.float32))
+        assert bool(info["lookahead_handback"]) == gate[k], k
+        if term or trunc:
+            break
+    env.close()
+    with pytest.raises(ValueError, match="not both"):
+        split_lookahead("barrier:lookahead=0.3,demand=100,predict=0.5")
+    with pytest.raises(ValueError, match="LookaheadParams.predict"):
+        split_lookahead("barrier:lookahead=0.3,predict=1.5")

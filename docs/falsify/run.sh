@@ -16,13 +16,15 @@ declare -A rows=(
     [barrier]="--agent $cert --residual-filter barrier"
     [barrier_handback]="--agent $cert --residual-filter barrier:handback=0.0033"
     [barrier_handback_lookahead]="--agent $cert --residual-filter barrier:handback=0.0033,lookahead=0.35"
+    [barrier_handback_predict]="--agent $cert --residual-filter barrier:handback=0.0033,lookahead=0.35,predict=0.5"
     [cbf_handback]="--agent $cert --residual-filter cbf:handback=0.0033"
     [cbf_handback_lookahead]="--agent $cert --residual-filter cbf:handback=0.0033,lookahead=0.35"
     [ppc]="--controller ppc"
     [funnel]="--controller funnel"
     [nmpc]="--controller nmpc"
 )
-order=(barrier_handback_lookahead barrier_handback residual barrier cbf_handback cbf_handback_lookahead ppc funnel nmpc)
+order=(barrier_handback_lookahead barrier_handback barrier_handback_predict residual barrier cbf_handback
+       cbf_handback_lookahead ppc funnel nmpc)
 want=("$@")
 [ ${#want[@]} -eq 0 ] && want=("${order[@]}")
 for row in "${want[@]}"; do
