@@ -1226,6 +1226,34 @@ def falsify_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def falsify_regions() -> str:
+    """Where each row's counterexamples lie, in words (issue 52, item 3): the range of every knob over
+    them, the law alone's margin there and how far beyond a bound the policy went."""
+    import json
+
+    out = []
+    for label, row in FALSIFY_ROWS:
+        f = DOCS / "falsify" / row / "falsify.json"
+        if not f.is_file():
+            continue
+        ces = [c for run in json.loads(f.read_text())["runs"] for c in run["counterexamples"]]
+        if not ces:
+            out.append(f"- {label}: no counterexample.")
+            continue
+        knobs = []
+        for k in ces[0]["params"]:
+            if k == "noise_seed":
+                continue
+            v = [c["params"][k] for c in ces]
+            knobs.append(f"{k} {min(v):.3g} to {max(v):.3g}" if min(v) != max(v) else f"{k} {v[0]:.3g}")
+        law = [c["law_margin_deg"] for c in ces]
+        pol = [-c["policy_margin_deg"] for c in ces]
+        out.append(f"- {label}: {len(ces)} counterexample(s), at {', '.join(knobs)}; the law alone keeps "
+                   f"{min(law):.2g} to {max(law):.2g} degrees there, the policy goes {min(pol):.2g} to "
+                   f"{max(pol):.2g} degrees beyond the bound.")
+    return "\n".join(out) + "\n"
+
+
 BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "README.md": {"headline": lambda: headline_table("docs/"), "verdict": lambda: verdict_table("docs/"),
                   "best-verdict": lambda: best_verdict("  ")},
@@ -1277,6 +1305,7 @@ if (DOCS / "ladder" / "L3" / "report.json").is_file():  # until the ladder has b
     BLOCKS["README.md"]["ladder-verdict"] = lambda: ladder_verdict("  ")
 if any((DOCS / "falsify" / row / "falsify.json").is_file() for _, row in FALSIFY_ROWS):  # until a row has run
     BLOCKS["docs/certificate.md"]["falsify"] = falsify_table
+    BLOCKS["docs/certificate.md"]["falsify-regions"] = falsify_regions
 if (DOCS / "plain_audit" / "summary.json").is_file():  # until the audit has run, its page says so
     BLOCKS["docs/plain_audit.md"] = {"audit": audit_table}
 
