@@ -500,7 +500,8 @@ def audit_table() -> str:
 LADDER_ROWS = (("the law (paper gains)", "proposed"), ("the law (tuned gains)", "proposed_tuned"), ("PPC", "ppc"),
                ("floor (10 ms)", "floor"), ("residual PPO over the tuned law (shipped, trained at L3)", "ppo_residual_tuned"),
                ("plain PPO, 2M steps per seed", "ppo_L{level}"), ("plain SAC, 2M steps per seed", "sac_L{level}"),
-               ("plain PPO, 20M steps", "ppo_long_L{level}"))
+               ("plain PPO, 20M steps", "ppo_long_L{level}"),
+               ("plain PPO, 2M steps, the full benchmark's reward", "ppo_bench_L{level}"))
 """The ladder's rows: label, the policy's pooled name in docs/ladder/L<level>/report.json ({level}
 filled in); a row a level did not score is left out."""
 

@@ -15,7 +15,8 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 ROWS = (("law, paper gains", "proposed"), ("law, tuned", "proposed_tuned"), ("PPC", "ppc"), ("floor", "floor"),
         ("residual over tuned law", "ppo_residual_tuned"), ("plain PPO 2M", "ppo_L{level}"),
-        ("plain SAC 2M", "sac_L{level}"), ("plain PPO 20M", "ppo_long_L{level}"))
+        ("plain SAC 2M", "sac_L{level}"), ("plain PPO 20M", "ppo_long_L{level}"),
+        ("plain PPO 2M, benchmark reward", "ppo_bench_L{level}"))
 
 
 def main() -> int:
