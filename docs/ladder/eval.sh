@@ -6,10 +6,11 @@
 # docs/ladder/run.py kept for that level; then pooled over seeds by rliable (agents.report).
 #
 #   docs/ladder/eval.sh [KEPT]      # KEPT default docs/ladder/runs (a run is scored once finished)
+#   LEVELS="3" docs/ladder/eval.sh  # only these levels (default 0 1 2 3)
 set -euo pipefail
 kept=${1:-docs/ladder/runs}
 cd "$(dirname "$0")/../.."
-for level in 0 1 2 3; do
+for level in ${LEVELS:-0 1 2 3}; do
     agents=(agents/pretrained/ppo_residual_tuned)
     for run in "$kept"/*_L"$level"_s?; do
         [ -f "$run/model.zip" ] && grep -q '"completed": true' "$run/metadata.json" && agents+=("$run")
