@@ -188,6 +188,31 @@ def tuning_table() -> str:
             "|---|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
 
 
+FALSIFIED = (("ppc", "prescribed-performance control"), ("funnel", "funnel control"), ("nmpc", "nonlinear MPC"))
+"""The control rows the falsifier searched (docs/falsify/run.sh): folder, label."""
+
+
+def falsify_control_table() -> str:
+    """Where each control row breaks a bound that the proposed law with the paper's gains keeps, from
+    blf-falsify's reports (``docs/falsify/<row>/falsify.json``); "" until one exists."""
+    import json
+
+    rows = []
+    for row, label in FALSIFIED:
+        f = DOCS / "falsify" / row / "falsify.json"
+        if f.is_file():
+            r = json.loads(f.read_text())
+            low = min(x["lowest_robustness_deg"] for x in r["runs"])
+            rows.append(f"| {label} | {r['searches']} x {r['budget_per_search']} | {r['falsification_rate']:.2f} | "
+                        f"{r['counterexamples']} | {low:.3g} |")
+    if not rows:
+        return ""
+    return ("Where each breaks a bound that the law with the paper's gains keeps, searched by `blf-falsify` over "
+            "`SAFE_RANGES` (`docs/falsify/run.sh`; the regions are in [the certificate](../certificate.md#judged-by-"
+            "the-falsifier)):\n\n| controller | searches x simulations | falsification rate | counterexamples | "
+            "lowest robustness (deg) |\n|---|---|---|---|---|\n" + "\n".join(rows) + "\n")
+
+
 def _page(name: str, body: str) -> str:
     title, lead = TITLES[name]
     return f"# {title}\n\n{lead}\n\n{body}"
@@ -196,7 +221,9 @@ def _page(name: str, body: str) -> str:
 def pages() -> dict[Path, str]:
     """Every page this script writes, with its text (a page whose results are absent is left out)."""
     out = DOCS / "control"
-    made = {out / "protocol.md": _page("protocol.md", protocol_table() + "\n" + tuning_table())}
+    falsified = falsify_control_table()
+    made = {out / "protocol.md": _page("protocol.md", protocol_table() + "\n" + tuning_table()
+                                       + ("\n" + falsified if falsified else ""))}
     if (DOCS / "filters_plain").is_dir():
         made[out / "filters.md"] = _page("filters.md", filters_table())
     if (DOCS / "nmpc" / "results.json").is_file():
