@@ -429,7 +429,8 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     """An agent's metadata with its env's residual filter replaced: ``name`` (e.g. "barrier"), or
     "none" for no filter. The agent's name says so (``+barrier``, ``-filter``); the env kwargs, and
     so the results' provenance, record it. The look-ahead hand-back's keys (``lookahead``,
-    ``demand``; blf_gym.lookahead) may ride on the filter's: "barrier:handback=0.0033,lookahead=0.35"."""
+    ``demand``, ``predict``; blf_gym.lookahead) may ride on the filter's:
+    "barrier:handback=0.0033,lookahead=0.35"."""
     from blf_gym.lookahead import split_lookahead
     from blf_gym.registry import make_controller
 

@@ -107,7 +107,7 @@ ARGUMENTS: tuple[Argument, ...] = (
     Argument("observation_extras", "-", "names of optional entries of blf_gym.observation.OBSERVATION",
              "optional observation entries appended after the others, in the order named"),
     Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law, optionally with '
-             'parameters ("barrier:handback=0.0033"); in residual mode also lookahead=SECONDS[,demand=D]',
+             'parameters ("barrier:handback=0.0033"); in residual mode also lookahead=SECONDS[,demand=D or ,predict=M]',
              "a safety filter between the action and the actuator (residual mode: on the residual; plain mode: on "
              "the torque minus the proposed law's); lookahead: the look-ahead hand-back (blf_gym.lookahead)"),
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
