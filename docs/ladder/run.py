@@ -44,8 +44,7 @@ class Run(NamedTuple):
 PPO_CONFIG = "agents/configs/ppo_plain_ladder.yaml"
 SAC_CONFIG = "agents/configs/sac_plain_ladder.yaml"
 
-BENCH_REWARD = ("env.reward_weights.tracking=100.0", "env.reward_weights.alive=1.0",
-                "env.reward_weights.violation=1500000.0")
+BENCH_REWARD = ("env.reward_weights={tracking: 100.0, torque: 0.01, alive: 1.0, violation: 1500000.0}",)
 """Levels 0 and 1 widen the bounds tenfold, so the shaped reward's tracking term, (e1 / bound)^2, is a
 hundred times flatter there than on the full benchmark. These weights give back the full benchmark's
 reward as a function of the error: 100 (e1 / (10 k))^2 = (e1 / k)^2 against an alive bonus of 1. The
