@@ -138,14 +138,18 @@ def lookahead_gate(scenario: Scenario, period: float, params: LookaheadParams) -
     duration = scenario.sim.duration
     steps = int(math.ceil(duration / period - 1e-9)) + 1
     ts = np.arange(0.0, steps * period + params.horizon + GRID, GRID)
-    hot = reference_demand(ts, scenario) >= params.demand
-    # hot samples' times, then for each period whether one falls in its window
-    t_hot = ts[hot]
-    lo = np.arange(steps) * period - params.horizon
-    hi = np.arange(steps) * period + period + params.horizon
-    first = np.searchsorted(t_hot, lo - 1e-12, side="left")
-    return (first < len(t_hot)) & (t_hot[np.minimum(first, max(len(t_hot) - 1, 0))] <= hi + 1e-12) \
-        if len(t_hot) else np.zeros(steps, dtype=bool)
+    return _windows_hit(ts[reference_demand(ts, scenario) >= params.demand], period, steps, params.horizon)
+
+
+def _windows_hit(times: np.ndarray, period: float, steps: int, horizon: float) -> np.ndarray:
+    """For each control period k, whether one of the sorted ``times`` falls in
+    ``[k * period - horizon, (k + 1) * period + horizon]``: both rules' window."""
+    if not len(times):
+        return np.zeros(steps, dtype=bool)
+    lo = np.arange(steps) * period - horizon
+    hi = lo + period + 2 * horizon
+    first = np.searchsorted(times, lo - 1e-12, side="left")
+    return (first < len(times)) & (times[np.minimum(first, len(times) - 1)] <= hi + 1e-12)
 
 
 def design_scenario(scenario: Scenario) -> Scenario:
@@ -162,14 +166,8 @@ def margin_gate(t: np.ndarray, margin: np.ndarray, period: float, steps: int, ho
                 threshold: float) -> np.ndarray:
     """Whether each of ``steps`` control periods is handed back: the smallest of ``margin`` (the law's
     normalized margin over joints, sampled at ``t``) in ``[t_k - horizon, t_k + period + horizon]``
-    is below ``threshold``. Samples past the run's end count as its last."""
-    low = np.asarray(t)[np.asarray(margin) < threshold]
-    lo = np.arange(steps) * period - horizon
-    hi = np.arange(steps) * period + period + horizon
-    if not len(low):
-        return np.zeros(steps, dtype=bool)
-    first = np.searchsorted(low, lo - 1e-12, side="left")
-    return (first < len(low)) & (low[np.minimum(first, len(low) - 1)] <= hi + 1e-12)
+    is below ``threshold``."""
+    return _windows_hit(np.asarray(t)[np.asarray(margin) < threshold], period, steps, horizon)
 
 
 def predicted_gates(scenarios: "list[Scenario]", controller: Any, observer: Any, period: float,
