@@ -50,7 +50,7 @@ def pytest_report_header(config):
     """Say, before the first dot, that a first run compiles the closed-loop kernels first: without
     it the run prints nothing for minutes."""
     try:
-        from blf_gym.simulate import kernels_cached
+        from blf_gym.kernel.simulate import kernels_cached
     except ImportError:
         return None
     if kernels_cached():
@@ -109,7 +109,7 @@ def _own_law_cache(tmp_path_factory, monkeypatch):
 # The closed-loop kernels most of the suite uses, compiled once at the start of a parallel run,
 # split between the pytest-xdist workers (worker k builds every W-th). Each build takes about a
 # minute here; without this the workers' first tests needed the same kernels at the same time, and
-# one worker waited on the other's compile (the lock in blf_gym.simulate.ClosedLoop) instead of
+# one worker waited on the other's compile (the lock in blf_gym.kernel.simulate.ClosedLoop) instead of
 # building another. Names a run does not have (an example plug-in not installed) are skipped.
 _SUITE_KERNELS = [  # (controller, observer, residual filter, plain, lanes)
     # the batch build (4 lanes) of each, which batches of two arms or more use and single arms
@@ -126,8 +126,8 @@ def _suite_kernels_split_between_workers():
     worker, count = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     if not worker.startswith("gw") or count < 2:
         return
-    from blf_gym.params import preset
-    from blf_gym.simulate import ClosedLoop
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import ClosedLoop
 
     k = int(worker[2:])
     for controller, observer, filt, plain, lanes in _SUITE_KERNELS[k::count]:

@@ -24,8 +24,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import help_text
-from blf_gym.params import PRESETS
+from blf_gym.results.io import help_text
+from blf_gym.model.params import PRESETS
 
 __all__ = ["sequences", "run", "main"]
 
@@ -64,7 +64,7 @@ def run(presets: Sequence[str] = tuple(PRESETS), suite_seeds: Sequence[int] = (1
     """Every sequence on every group, filtered and not: per (sequence, group, filter) the share of
     certificate breaks, failures, filter breaches and episodes where an assumption failed."""
     from agents.evaluate import agent_episodes, build_scenarios, law_reference
-    from blf_gym.metrics import episode_stats, summarize
+    from blf_gym.results.metrics import episode_stats, summarize
 
     groups = build_scenarios(list(presets), list(suite_seeds), {}, None, ["randomized", "stress"])
     labels = [label for label, scs in groups for _ in scs]
@@ -119,7 +119,7 @@ def tradeoff(agent: str | Path, suite_seeds: Sequence[int] = (20, 50), threads: 
     from agents.evaluate import agent_episodes, build_scenarios, law_reference
     from agents.loading import load_agent
     from baselines.filters import barrier_filter
-    from blf_gym.metrics import episode_stats, summarize
+    from blf_gym.results.metrics import episode_stats, summarize
 
     model, meta, norm = load_agent(agent)
     groups = build_scenarios(["paper-0.1hz", "paper-0.5hz"], list(suite_seeds), {}, None, ["randomized", "stress"])
@@ -158,7 +158,7 @@ def plot_tradeoff(res: dict[str, Any], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from blf_gym.io import atomic_path
+    from blf_gym.results.io import atomic_path
 
     groups = list(dict.fromkeys(r["group"] for r in res["rows"]))
     cols = min(2, len(groups))  # at most two panels a row: the docs' column is about 800 px wide
@@ -215,8 +215,8 @@ def _table(res: dict[str, Any]) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from blf_gym.io import atomic_write_json, atomic_write_text, check_out_dir, os_error_message
-    from blf_gym.metrics import provenance
+    from blf_gym.results.io import atomic_write_json, atomic_write_text, check_out_dir, os_error_message
+    from blf_gym.results.metrics import provenance
 
     p = argparse.ArgumentParser(prog="python -m agents.adversarial", description=help_text(__doc__.split("\n\n")[0]))
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="folder for certificate.json and .md")

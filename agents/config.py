@@ -8,7 +8,7 @@ Two parts, each declared once here:
 * :class:`TrainConfig`: how it trains, the keys of a config YAML (``agents/configs/*.yaml``).
   :func:`check_config` refuses an unknown key or a value of the wrong type, naming the file and
   the key. The ``env`` keys are the env's own arguments (:func:`env_keys`, read from
-  ``blf_gym.envcore.EnvCore``'s signature), less the ones a run sets itself.
+  ``blf_gym.envs.envcore.EnvCore``'s signature), less the ones a run sets itself.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from blf_gym import ENV_IDS
-from blf_gym.params import check_int, check_real, is_integer
+from blf_gym.model.params import check_int, check_real, is_integer
 
 __all__ = ["RunSpec", "TrainConfig", "CONFIG_DIR", "CONFIG_KEYS", "RUN_SET_ENV_KEYS", "SET_HELP", "add_config_options",
            "apply_overrides", "check_config", "curriculum_scale", "env_keys", "parse_overrides", "set_dotted", "shipped_config"]
@@ -62,7 +62,7 @@ class TrainConfig:
     """Gaussian exploration noise of off-policy algorithms, in action units (>= 0)."""
     curriculum: Mapping[str, Any] = field(default_factory=dict, metadata={"kind": "mapping"})
     """A funnel-width curriculum (:func:`curriculum_scale`): ``{bound_scale: S, until: T}`` trains
-    the first episodes with bounds S times as wide (1 < S <= ``blf_gym.envcore.MAX_BOUND_SCALE``) and shrinks them geometrically to
+    the first episodes with bounds S times as wide (1 < S <= ``blf_gym.envs.envcore.MAX_BOUND_SCALE``) and shrinks them geometrically to
     the benchmark's own by agent step T (>= 1), and at 1 from then on; empty (the default): none.
     Learning curves and blf-eval always score at the benchmark's bounds."""
     init_from: str = field(default="", metadata={"kind": "str"})
@@ -93,7 +93,7 @@ class TrainConfig:
 
 
 def _check_curriculum(cur: Mapping[str, Any], where: str) -> None:
-    from blf_gym.envcore import MAX_BOUND_SCALE
+    from blf_gym.envs.envcore import MAX_BOUND_SCALE
 
     if set(cur) != {"bound_scale", "until"}:
         raise ValueError(f"{where}: curriculum takes exactly bound_scale and until, got {sorted(cur)}")
@@ -128,7 +128,7 @@ def env_keys() -> tuple[str, ...]:
     :data:`RUN_SET_ENV_KEYS`."""
     import inspect
 
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     return tuple(p for p in inspect.signature(EnvCore.__init__).parameters
                  if p != "self" and p not in RUN_SET_ENV_KEYS)
@@ -256,8 +256,8 @@ class RunSpec:
     def checked(self) -> "RunSpec":
         """This spec with the defaults filled in (``controller``), or ValueError naming the field
         and its accepted values. The held-out suites (stress, certificate) are refused."""
-        from blf_gym.registry import available_controllers, available_observers
-        from blf_gym.scenarios import HELD_OUT_SUITES, resolve_scenario
+        from blf_gym.plugins.registry import available_controllers, available_observers
+        from blf_gym.envs.scenarios import HELD_OUT_SUITES, resolve_scenario
 
         from .loading import available_algorithms
 

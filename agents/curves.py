@@ -24,9 +24,9 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from blf_gym.io import help_text
+from blf_gym.results.io import help_text
 
-from .evaluate import CURVE_GROUPS
+from blf_gym.envs.protocol import CURVE_GROUPS
 
 __all__ = ["main", "plot_curves"]
 
@@ -42,26 +42,16 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from blf_gym.io import atomic_path
+    from blf_gym.results.io import atomic_path
 
-    curves = []
-    for run in runs:
-        path = Path(run) / "eval" / "curve.json"
-        if not path.is_file() and (Path(run) / "curve.json").is_file():
-            path = Path(run) / "curve.json"  # a run's record as kept in docs/ (docs/budget/runs/NAME)
-        if not path.is_file():
-            raise ValueError(f"{run}: no eval/curve.json (was it trained by blf-train?)")
-        curves.append((Path(run).name, json.loads(path.read_text())))
-    scoring = {(c.get("suite_seeds", 4), c.get("env_kwargs", {}).get("duration")) for _, c in curves}
-    if len(scoring) > 1:
-        raise ValueError("the runs' curves were scored on different scenarios (curve_suite_seeds or "
-                         f"duration differ: {sorted(scoring, key=str)}); plot them separately")
+    curves = _read_curves(runs)
     if law is None:
         from .sweep import law_levels
 
         first = curves[0][1]
         law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))
-    fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, 3, figsize=(13, 11), sharex=True)
+    n = len(law[CURVE_GROUPS[0]])  # joints
+    fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, max(n, 3), figsize=(13 * max(n, 3) / 3, 11), sharex=True)
     scale = 1.0 if log_steps else 1e3
     for name, c in curves:
         pts = c["points"]
@@ -70,12 +60,12 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
             steps[0] = 0.5 * steps[1]  # the untrained policy, drawn at half the first evaluated step
         for gi, g in enumerate(CURVE_GROUPS):
             rmse = np.array([p[g]["rmse_deg"] for p in pts])
-            for j in range(3):
+            for j in range(n):
                 axes[gi, j].plot(steps, rmse[:, j], marker=".", label=name)
         viol = np.array([sum(sum(p[g]["violations"]) for g in CURVE_GROUPS) for p in pts])
         axes[-1, 0].plot(steps, viol, marker=".", label=name)
     for gi, g in enumerate(CURVE_GROUPS):
-        for j in range(3):
+        for j in range(n):
             ax = axes[gi, j]
             ax.axhline(law[g][j], color="k", ls="--", lw=1.2, label="proposed law")
             ax.set_title(f"{g}, joint {j + 1}", fontsize=9)
@@ -90,7 +80,7 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
     axes[-1, 0].axhline(0, color="k", ls="--", lw=1.2, label="proposed law")
     axes[-1, 0].set_ylabel("violating samples\n(all scenarios)")
     axes[-1, 0].grid(alpha=0.3)
-    for j in (1, 2):
+    for j in range(1, axes.shape[1]):
         axes[-1, j].axis("off")
     if log_steps:
         from matplotlib.ticker import NullFormatter
@@ -100,7 +90,7 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         axes[-1, 0].set_ylim(bottom=0.0)
         for ax in axes.flat:  # label the decades only: matplotlib's minor labels overlap on a short span
             ax.xaxis.set_minor_formatter(NullFormatter())
-    for j in range(3):
+    for j in range(axes.shape[1]):
         axes[-1, j].set_xlabel("training steps (log; step 0 drawn at half the first evaluation)" if log_steps
                                else "training steps (thousands)")
     handles, labels = axes[0, 0].get_legend_handles_labels()
@@ -112,6 +102,24 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         fig.savefig(tmp, format="png", dpi=90)
     plt.close(fig)
     return out
+
+
+def _read_curves(runs: Sequence[Path]) -> list[tuple[str, dict]]:
+    """(run name, its curve.json) of each run; ValueError if one has none or they were scored on
+    different scenarios."""
+    curves = []
+    for run in runs:
+        path = Path(run) / "eval" / "curve.json"
+        if not path.is_file() and (Path(run) / "curve.json").is_file():
+            path = Path(run) / "curve.json"  # a run's record as kept in docs/ (docs/budget/runs/NAME)
+        if not path.is_file():
+            raise ValueError(f"{run}: no eval/curve.json (was it trained by blf-train?)")
+        curves.append((Path(run).name, json.loads(path.read_text())))
+    scoring = {(c.get("suite_seeds", 4), c.get("env_kwargs", {}).get("duration")) for _, c in curves}
+    if len(scoring) > 1:
+        raise ValueError("the runs' curves were scored on different scenarios (curve_suite_seeds or "
+                         f"duration differ: {sorted(scoring, key=str)}); plot them separately")
+    return curves
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -137,7 +145,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"blf-curves: error: {exc}", file=sys.stderr)
         return 2
     except OSError as exc:
-        from blf_gym.io import os_error_message
+        from blf_gym.results.io import os_error_message
 
         print(f"blf-curves: error: {os_error_message(exc, out)}", file=sys.stderr)
         return 2

@@ -49,11 +49,13 @@ from typing import Any, Iterator, Sequence
 
 import numpy as np
 
-from blf_gym.io import begin_output_set, check_out_dir, finish_output_set, help_text, os_error_message
-from blf_gym.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
-from blf_gym.levels import DEFAULT_LEVEL, apply_level, check_level
-from blf_gym.params import PRESETS, Scenario, preset
-from blf_gym.scenarios import SUITES, apply_variations, sample_suite, variation_label
+from blf_gym.results.io import begin_output_set, check_out_dir, finish_output_set, help_text, os_error_message
+from blf_gym.results.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats, summarize, write_results
+from blf_gym.envs.levels import DEFAULT_LEVEL, apply_level, check_level
+from blf_gym.model.params import PRESETS, Scenario, preset
+from blf_gym.envs.protocol import (CURVE_GROUPS, EVAL_SEED_OFFSET, PROTOCOL_SEEDS, REFERENCE, SUITES,  # noqa: F401 (re-exported)
+                                   suite_seed_offset)
+from blf_gym.envs.scenarios import apply_variations, sample_suite, variation_label
 
 from . import lawcache
 from .lawcache import law_key, load_law, store_law
@@ -67,41 +69,9 @@ __all__ = ["main", "evaluate_controller", "evaluate_agent", "controller_episodes
 
 def registered_controllers() -> list[str]:
     """The inner controllers registered in the ``blf_gym.controllers`` entry-point group."""
-    from blf_gym.registry import available_controllers
+    from blf_gym.plugins.registry import available_controllers
 
     return [c for c in available_controllers() if c != "none"]
-
-EVAL_SEED_OFFSET = 10_000
-"""Randomized-suite evaluation seeds start here, apart from any training seed."""
-
-REFERENCE = "ppc"
-"""The second yardstick of every record (``score_vs_reference``): the controller with the best
-training-suite score on the protocol when it was fixed (2026-12-06, docs/control/protocol.md:
-prescribed-performance control, 9.79, against the tuned law's 7.90 and full-state PD's 6.40), chosen
-once and fixed for a release. It is run on the inner path on the same scenarios and noise seeds as
-the baselines, and its own rows carry no score against itself."""
-
-
-def suite_seed_offset(suite: str) -> int:
-    """First scenario seed of a suite's evaluation episodes (``EVAL_SEED_OFFSET`` for the training
-    suite's held-out seeds, ``blf_gym.scenarios.STRESS_SEED_OFFSET`` for the stress suite,
-    ``CERTIFICATE_SEED_OFFSET`` for the certificate suite)."""
-    if suite == "stress":
-        from blf_gym.scenarios import STRESS_SEED_OFFSET
-
-        return STRESS_SEED_OFFSET
-    if suite == "certificate":
-        from blf_gym.scenarios import CERTIFICATE_SEED_OFFSET
-
-        return CERTIFICATE_SEED_OFFSET
-    if suite == "randomized":
-        return EVAL_SEED_OFFSET
-    raise ValueError(f"unknown suite {suite!r}; accepted values: {list(SUITES)}")
-
-
-CURVE_GROUPS = (*PRESETS, "randomized")
-"""The groups the learning curves and the sweeps score: each paper preset, and held-out episodes of
-the training suite (never the stress suite); see :func:`curve_scenarios`."""
 
 
 def curve_scenarios(suite_seeds: int, duration: float | None = None,
@@ -111,11 +81,6 @@ def curve_scenarios(suite_seeds: int, duration: float | None = None,
     presets' 30 s), at difficulty ``level`` (an agent's curve is drawn at the level it trains at)."""
     groups = build_scenarios(list(PRESETS), suite_seeds, {}, duration, level=level)
     return [(label.split("@L")[0], scs) for label, scs in groups]
-
-
-PROTOCOL_SEEDS = {"randomized": 20, "stress": 50}
-"""The benchmark's protocol: the paper presets, 20 held-out episodes of the training suite and 50
-of the stress suite (what ``blf-eval`` runs by default)."""
 
 
 def build_scenarios(
@@ -128,7 +93,7 @@ def build_scenarios(
     With variations (``kwargs``) every label gains them (:func:`variation_label`: ``+frequency=0.5``,
     or ``+custom`` when they do not fit in a short label), so a varied result is never mistaken for
     the plain one; the variations themselves are recorded in each record's provenance by blf-eval.
-    Below the full benchmark (``level`` 3, blf_gym.levels) every episode is taken to that level after
+    Below the full benchmark (``level`` 3, blf_gym.envs.levels) every episode is taken to that level after
     its draw and its variations, and every label gains ``@L<level>``."""
     level = check_level("blf-eval: --level", level)
     tag = "" if level == DEFAULT_LEVEL else f"@L{level}"
@@ -148,7 +113,7 @@ def build_scenarios(
             raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
         sc = preset(name, **sim_over)
         if kwargs:
-            sc = apply_variations(sc, kwargs)  # named with the variations' label (blf_gym.scenarios)
+            sc = apply_variations(sc, kwargs)  # named with the variations' label (blf_gym.envs.scenarios)
         sc = apply_level(sc, level)  # named with its level
         groups.append((sc.name, [sc]))
     for name, count in zip(suites, counts):
@@ -182,7 +147,7 @@ def controller_episodes(name: str, scenarios: Sequence[Scenario], threads: int |
     """A baseline controller's trajectories on the inner path, one per scenario, in order, computed
     ``batch`` episodes at a time (episode i has noise seed ``EVAL_SEED_OFFSET + i``), so a caller
     that reduces each one as it comes keeps at most a batch of 1 ms records in memory."""
-    from blf_gym.simulate import LANES, simulate_batch
+    from blf_gym.kernel.simulate import LANES, simulate_batch
 
     for lo in range(0, len(scenarios), batch):
         part = list(scenarios[lo : lo + batch])
@@ -344,14 +309,14 @@ def agent_group_episodes(model: Any, meta: dict[str, Any], norm: Any, groups: Se
     its trajectory is handed over, so a caller that reduces them keeps at most one batch of records.
     ``on_batch(parts, wall_s)``, if given, is called after each batch with its parts and wall time.
     ``channels`` are the signals each trajectory keeps (``EnvCore``'s ``record_channels``; default
-    all): :data:`blf_gym.metrics.METRIC_CHANNELS` is what the records read, a third of the memory.
+    all): :data:`blf_gym.results.metrics.METRIC_CHANNELS` is what the records read, a third of the memory.
     ``noise_seeds`` (one sequence per group, one seed per episode) replaces ``EVAL_SEED_OFFSET + i``
     as each episode's generator seed (blf-falsify searches over them).
 
     ``model`` None is the proposed law alone (a zero residual, the agent's env set-up otherwise): its
     episodes advance :data:`LAW_HOLD_S` at a time (``EnvCore.hold``), each arm drawing the same noise
     as a stepped agent's, so the trajectories are those of a zero residual stepped period by period."""
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     # the scenarios are given, no reward is needed (the metrics do not read it), termination is off:
     # the same env the loader checked the agent against
@@ -429,10 +394,10 @@ def with_filter(meta: dict[str, Any], name: str) -> dict[str, Any]:
     """An agent's metadata with its env's residual filter replaced: ``name`` (e.g. "barrier"), or
     "none" for no filter. The agent's name says so (``+barrier``, ``-filter``); the env kwargs, and
     so the results' provenance, record it. The look-ahead hand-back's keys (``lookahead``,
-    ``demand``, ``predict``; blf_gym.lookahead) may ride on the filter's:
+    ``demand``, ``predict``; blf_gym.envs.lookahead) may ride on the filter's:
     "barrier:handback=0.0033,lookahead=0.35"."""
-    from blf_gym.lookahead import split_lookahead
-    from blf_gym.registry import make_controller
+    from blf_gym.envs.lookahead import split_lookahead
+    from blf_gym.plugins.registry import make_controller
 
     if name != "none":
         try:
@@ -488,7 +453,7 @@ def law_reference_groups(groups: Sequence[Sequence[Scenario]], meta: dict[str, A
 def law_reference(scenarios: Sequence[Scenario], meta: dict[str, Any] | None = None,
                   threads: int | None = None) -> list[EpisodeStats]:
     """The proposed law on the same episodes and noise as a policy's, each episode reduced to its
-    :class:`blf_gym.metrics.EpisodeStats` (what ``summarize(law=...)`` reads; no signals are kept).
+    :class:`blf_gym.results.metrics.EpisodeStats` (what ``summarize(law=...)`` reads; no signals are kept).
 
     For a baseline (``meta`` None) that is the inner path with the same noise seeds. For an agent
     it is the env path with a zero residual over the proposed law (:func:`law_env_kwargs`), the
@@ -554,7 +519,7 @@ def _parser() -> argparse.ArgumentParser:
                         "(default: none)")
     p.add_argument("--duration", type=float, default=None, metavar="S", help="episode length in s (default 30)")
     p.add_argument("--level", type=int, default=DEFAULT_LEVEL, metavar="L",
-                   help="difficulty level of every episode, 0 to 3 (blf_gym.levels; docs/levels.md): 0 the nominal "
+                   help="difficulty level of every episode, 0 to 3 (blf_gym.envs.levels; docs/levels.md): 0 the nominal "
                         "plant in 10x wider bounds, 1 the scenario's plant in 10x wider bounds, 2 no external force, "
                         f"3 the full benchmark (default {DEFAULT_LEVEL}); every record names its level")
     p.add_argument("--threads", type=int, default=None, metavar="T",
@@ -723,7 +688,7 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from blf_gym.io import atomic_path
+    from blf_gym.results.io import atomic_path
 
     written = []
     for sc in sorted({r["scenario"] for r, _ in results}):
@@ -740,6 +705,61 @@ def _plots(results: list[tuple[dict[str, Any], list[Any]]], out: Path) -> list[P
     return written
 
 
+def _checked_args(args: argparse.Namespace) -> dict[str, Any]:
+    """Check blf-eval's arguments (ValueError names the option and what it accepts), fill in the
+    defaults that depend on others; returns the scenario keyword arguments."""
+    if args.save_traj and args.out is None:
+        raise ValueError("--save-traj needs --out DIR")
+    try:
+        kwargs = json.loads(args.scenario_kwargs)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"--scenario-kwargs is not valid JSON ({exc}); example: "
+                         '\'{"payload": 0.15}\'') from exc
+    if not isinstance(kwargs, dict):
+        raise ValueError("--scenario-kwargs must be a JSON object")
+    if args.jobs is None:
+        args.jobs = default_jobs()
+    elif args.jobs < 1:
+        raise ValueError(f"--jobs must be an integer >= 1, got {args.jobs}")
+    if args.controllers is None:
+        # scoring one's own agent costs that agent and the law, not every baseline's rows
+        args.controllers = ["proposed"] if args.agents else registered_controllers()
+    for c in args.controllers:
+        if c not in registered_controllers():
+            raise ValueError(f"unknown controller {c!r}; accepted values: {registered_controllers()}")
+    from blf_gym.plugins.registry import available_observers
+
+    if args.observer not in available_observers():
+        raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")
+    if args.out is not None:
+        try:
+            check_out_dir(args.out)  # a file, a read-only folder: said before anything runs
+        except OSError as exc:
+            raise ValueError(os_error_message(exc, args.out)) from None
+    return kwargs
+
+
+def _load_agents(args: argparse.Namespace, agent_paths: list[Path]) -> list[tuple]:
+    """(path or name, model, metadata, normalization) of every agent folder and registered policy."""
+    if agent_paths:
+        # torch on one thread: an agent's network on a batch of 50 rows gains nothing from more,
+        # and its idle threads beside the env's (and any other job) made each call 100 times
+        # slower under load; the actions are the same to the bit on one thread or two
+        import torch
+
+        torch.set_num_threads(1)
+    agents = [(p, *load_agent(p, bool(getattr(args, "accept_changed_files", False)))) for p in agent_paths]
+    if args.residual_filter is not None:
+        agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
+    from blf_gym.plugins.registry import available_policies
+
+    for name in args.policies:
+        if name.partition(":")[0] not in available_policies():  # NAME or NAME:key=value,...
+            raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
+                             "blf_gym.policies entry points)")
+    return agents + [(POLICY_PREFIX + name, *load_policy(name)) for name in args.policies]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import shlex
 
@@ -748,34 +768,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command = shlex.join(["blf-eval", *argv])
     workers: _Workers | None = None
     try:
-        if args.save_traj and args.out is None:
-            raise ValueError("--save-traj needs --out DIR")
-        try:
-            kwargs = json.loads(args.scenario_kwargs)
-        except json.JSONDecodeError as exc:
-            raise ValueError(f"--scenario-kwargs is not valid JSON ({exc}); example: "
-                             '\'{"payload": 0.15}\'') from exc
-        if not isinstance(kwargs, dict):
-            raise ValueError("--scenario-kwargs must be a JSON object")
-        if args.jobs is None:
-            args.jobs = default_jobs()
-        elif args.jobs < 1:
-            raise ValueError(f"--jobs must be an integer >= 1, got {args.jobs}")
-        if args.controllers is None:
-            # scoring one's own agent costs that agent and the law, not every baseline's rows
-            args.controllers = ["proposed"] if args.agents else registered_controllers()
-        for c in args.controllers:
-            if c not in registered_controllers():
-                raise ValueError(f"unknown controller {c!r}; accepted values: {registered_controllers()}")
-        from blf_gym.registry import available_observers
-
-        if args.observer not in available_observers():
-            raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")
-        if args.out is not None:
-            try:
-                check_out_dir(args.out)  # a file, a read-only folder: said before anything runs
-            except OSError as exc:
-                raise ValueError(os_error_message(exc, args.out)) from None
+        kwargs = _checked_args(args)
         seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
         groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite, args.level)
         if not groups:
@@ -784,23 +777,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                        else [Path(a) for a in args.agents])
         if args.jobs > 1:  # they boot while the agents load below
             workers = _Workers(args.jobs, bool(agent_paths))
-        if agent_paths:
-            # torch on one thread: an agent's network on a batch of 50 rows gains nothing from more,
-            # and its idle threads beside the env's (and any other job) made each call 100 times
-            # slower under load; the actions are the same to the bit on one thread or two
-            import torch
-
-            torch.set_num_threads(1)
-        agents = [(p, *load_agent(p, bool(getattr(args, "accept_changed_files", False)))) for p in agent_paths]
-        if args.residual_filter is not None:
-            agents = [(p, model, with_filter(meta, args.residual_filter), norm) for p, model, meta, norm in agents]
-        from blf_gym.registry import available_policies
-
-        for name in args.policies:
-            if name.partition(":")[0] not in available_policies():  # NAME or NAME:key=value,...
-                raise ValueError(f"unknown policy {name!r}; accepted values: {available_policies()} (the "
-                                 "blf_gym.policies entry points)")
-        agents += [(POLICY_PREFIX + name, *load_policy(name)) for name in args.policies]
+        agents = _load_agents(args, agent_paths)
         if not args.controllers and not agents:
             raise ValueError("nothing to evaluate: give --controllers and/or --agents")
     except ValueError as exc:
@@ -817,7 +794,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"blf-eval: error: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:
-        # the failing file is named (blf_gym.io.atomic_path sees to it); the set stays marked incomplete
+        # the failing file is named (blf_gym.results.io.atomic_path sees to it); the set stays marked incomplete
         tail = "" if args.out is None else f"; the set in {args.out} is incomplete (no complete manifest.json)"
         print(f"blf-eval: error: {os_error_message(exc, args.out)}{tail}", file=sys.stderr)
         return 2
@@ -1128,8 +1105,8 @@ def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[
     (agents.loading); this builds the baselines' (and the law's, on both paths)."""
     import time
 
-    from blf_gym.envcore import EnvCore
-    from blf_gym.simulate import ClosedLoop
+    from blf_gym.envs.envcore import EnvCore
+    from blf_gym.kernel.simulate import ClosedLoop
 
     t0 = time.perf_counter()
     sc = groups[0][1][0] if groups and groups[0][1] else None
@@ -1150,7 +1127,7 @@ def _reference_name(name: str | None) -> str | None:
     """The ``--reference`` controller, checked against the registered ones ('none': no reference)."""
     if name is None or name == "none":
         return None
-    from blf_gym.registry import available_controllers
+    from blf_gym.plugins.registry import available_controllers
 
     if name not in available_controllers():
         raise ValueError(f"--reference {name!r} is not a registered controller; accepted: "
@@ -1167,90 +1144,133 @@ def _cost(scs: Sequence[Scenario], per_step: float, period: float | None = None)
 
 def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list,
          kwargs: dict[str, Any] | None = None, workers: _Workers | None = None) -> int:
-    from blf_gym.metrics import provenance
+    """Score every job (controller or agent) on ``groups``; print the table and write the outputs."""
+    run = _Run(args, groups, agents, kwargs or {}, workers)
+    run.plan()
+    if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
+        begin_output_set(args.out, run.meta_out.get("command"))
+    run.open_bar()
+    try:
+        _execute(run.ctx, run.pieces, workers, run.done, run.started)
+    except KeyboardInterrupt:
+        print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
+                                           "and manifest.json marks the set incomplete" if args.out else ""),
+              file=sys.stderr)
+        return 130
+    finally:
+        if run.bar is not None:
+            run.bar.close()
+    run.report()
+    return 0
 
-    kwargs = kwargs or {}
-    meta_out = provenance(command=getattr(args, "command", None))
-    jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
-    jobs += [(meta.get("name") or Path(p).parent.name, meta["mode"], (p, model, meta, norm))
-             for p, model, meta, norm in agents]
-    n_jobs = 1 if workers is None else getattr(args, "jobs", 1)
-    ctx = _Context(groups=groups, observer=args.observer,
-                   # the workers share the cores: one thread each unless told
-                   threads=args.threads if args.threads is not None or n_jobs <= 1 else 1,
-                   fresh=bool(getattr(args, "fresh_law", False)), save_traj=bool(args.save_traj), out=args.out,
-                   want_first=args.out is not None and not args.no_plots,
-                   residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder(),
-                   accept_changed_files=bool(getattr(args, "accept_changed_files", False)),
-                   reference=_reference_name(getattr(args, "reference", None)))
-    whole = [sc for _, scs in groups for sc in scs]
 
-    # the pieces, and which law each record is scored against: ("inner", g) for a baseline, (tag, g)
-    # for an agent, tag naming the agent's env set-up; laws[...] fills as pieces finish
-    pieces: list[_Piece] = []
-    laws: dict[tuple[str, int], list[Any]] = {}
-    own_law = "proposed" in args.controllers and args.observer == "leso"
-    # the proposed law's own row runs first: it is every other baseline's reference too
-    order = sorted(range(len(jobs)), key=lambda j: not (jobs[j][0] == "proposed" and jobs[j][2] is None and own_law))
-    law_tags: dict[int, str] = {}
-    for j in order:
-        name, kind, agent = jobs[j]
-        if agent is None:
+class _Run:
+    """One blf-eval run in pieces: the jobs, the pieces that score them (:meth:`plan`), and the
+    records, each finished once the law (and the reference) it is scored against is known."""
+
+    def __init__(self, args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], agents: list,
+                 kwargs: dict[str, Any], workers: _Workers | None) -> None:
+        from blf_gym.results.metrics import provenance
+
+        self.args, self.groups, self.kwargs = args, groups, kwargs
+        self.meta_out = provenance(command=getattr(args, "command", None))
+        jobs: list[tuple[str, str, Any]] = [(c, "baseline", None) for c in args.controllers]
+        jobs += [(meta.get("name") or Path(p).parent.name, meta["mode"], (p, model, meta, norm))
+                 for p, model, meta, norm in agents]
+        self.jobs = jobs
+        self.n_jobs = 1 if workers is None else getattr(args, "jobs", 1)
+        self.ctx = _Context(groups=groups, observer=args.observer,
+                            # the workers share the cores: one thread each unless told
+                            threads=args.threads if args.threads is not None or self.n_jobs <= 1 else 1,
+                            fresh=bool(getattr(args, "fresh_law", False)), save_traj=bool(args.save_traj),
+                            out=args.out, want_first=args.out is not None and not args.no_plots,
+                            residual_filter=getattr(args, "residual_filter", None), law_folder=lawcache.folder(),
+                            accept_changed_files=bool(getattr(args, "accept_changed_files", False)),
+                            reference=_reference_name(getattr(args, "reference", None)))
+        # the pieces, and which law each record is scored against: ("inner", g) for a baseline, (tag, g)
+        # for an agent, tag naming the agent's env set-up; laws[...] fills as pieces finish
+        self.pieces: list[_Piece] = []
+        self.laws: dict[tuple[str, int], list[Any]] = {}
+        self.own_law = "proposed" in args.controllers and args.observer == "leso"
+        self.law_tags: dict[int, str] = {}
+        # the second yardstick: the reference's own rows serve when it is scored, else its episodes alone
+        self.ref_scored = self.ctx.reference is not None and self.ctx.reference in args.controllers
+        self.refs: dict[int, list[Any]] = {}
+        # (job, group, record, [the group's first episode, for the plots]); the table lists them in the
+        # order of the jobs and groups, whatever order they ran in
+        self.results: list[tuple[int, int, dict[str, Any], list[Any]]] = []
+        self.traj_files: list[Path] = []
+        self.waiting: list[tuple[int, int, dict[str, Any], tuple[str, int]]] = []  # records waiting for their law
+        self.running: list[str] = []
+        self.bar: Any = None
+
+    def plan(self) -> None:
+        """The pieces: each baseline per group, each agent (with its law's episodes where the law
+        cache lacks them), and the law's and the reference's own episodes where no row gives them."""
+        groups, jobs = self.groups, self.jobs
+        # the proposed law's own row runs first: it is every other baseline's reference too
+        order = sorted(range(len(jobs)),
+                       key=lambda j: not (jobs[j][0] == "proposed" and jobs[j][2] is None and self.own_law))
+        for j in order:
+            name, _, agent = jobs[j]
+            if agent is None:
+                for g, (label, scs) in enumerate(groups):
+                    self.pieces.append(_Piece("baseline", (name, g), _cost(scs, 0.0), f"{name} / {label}", j))
+            else:
+                self._plan_agent(j, name, agent)
+        if any(agent is None for _, _, agent in jobs) and not self.own_law:
             for g, (label, scs) in enumerate(groups):
-                pieces.append(_Piece("baseline", (name, g), _cost(scs, 0.0), f"{name} / {label}", j))
-            continue
+                self.pieces.append(_Piece("inner_law", (g,), _cost(scs, 0.0), f"the law / {label}"))
+        if self.ctx.reference is not None and not self.ref_scored:
+            for g, (label, scs) in enumerate(groups):
+                self.pieces.append(_Piece("reference", (g,), _cost(scs, 0.0),
+                                          f"{self.ctx.reference} (the reference) / {label}"))
+
+    def _plan_agent(self, j: int, name: str, agent: tuple) -> None:
         path, model, meta, norm = agent
+        groups = self.groups
         period = float(meta["env_kwargs"].get("control_period", 0.01))
         # the law on the same episodes and noise as this agent's: one piece for every agent that
         # shares its env set-up (control period, noise draws), all groups the cache lacks in one go
         kw, tag = law_env_kwargs(meta), _law_tag(meta)
-        first_of_tag = tag not in law_tags.values()
-        law_tags[j] = tag
+        first_of_tag = tag not in self.law_tags.values()
+        self.law_tags[j] = tag
         if first_of_tag:
             keys = [law_key("env", kw.get("observer", "leso"), scs, _noise_seeds(scs), kw) for _, scs in groups]
             missing = []
             for g, (_, scs) in enumerate(groups):
-                hit = None if ctx.fresh else load_law(keys[g], len(scs))
+                hit = None if self.ctx.fresh else load_law(keys[g], len(scs))
                 if hit is not None:
-                    laws[(tag, g)] = hit[0]
+                    self.laws[(tag, g)] = hit[0]
                 else:
                     missing.append(g)
             if missing:
-                pieces.append(_Piece("law_env", (meta, missing, [keys[g] for g in missing]),
-                                     _cost([sc for g in missing for sc in groups[g][1]], 0.0, period),
-                                     f"{name} / the law's reference"))
-        pieces.append(_Piece("agent", (name, path if n_jobs > 1 else (model, meta, norm)),
-                             _cost(whole, 8e-5, period), name, j))
-    if any(agent is None for _, _, agent in jobs) and not own_law:
-        for g, (label, scs) in enumerate(groups):
-            pieces.append(_Piece("inner_law", (g,), _cost(scs, 0.0), f"the law / {label}"))
-    # the second yardstick: the reference's own rows serve when it is scored, else its episodes alone
-    ref_scored = ctx.reference is not None and ctx.reference in args.controllers
-    refs: dict[int, list[Any]] = {}
-    if ctx.reference is not None and not ref_scored:
-        for g, (label, scs) in enumerate(groups):
-            pieces.append(_Piece("reference", (g,), _cost(scs, 0.0), f"{ctx.reference} (the reference) / {label}"))
+                self.pieces.append(_Piece("law_env", (meta, missing, [keys[g] for g in missing]),
+                                          _cost([sc for g in missing for sc in groups[g][1]], 0.0, period),
+                                          f"{name} / the law's reference"))
+        whole = [sc for _, scs in groups for sc in scs]
+        self.pieces.append(_Piece("agent", (name, path if self.n_jobs > 1 else (model, meta, norm)),
+                                  _cost(whole, 8e-5, period), name, j))
 
-    if args.out is not None:  # before anything is written: an earlier complete set's manifest goes
-        begin_output_set(args.out, meta_out.get("command"))
-    bar = None
-    if not args.no_progress:
+    def open_bar(self) -> None:
+        """The progress bar (after compiling the kernels the run needs), unless --no-progress."""
+        if self.args.no_progress:
+            return
         from tqdm import tqdm
 
-        _ready_kernels(jobs, groups, args.observer, laws_needed=any(p.kind in ("law_env", "inner_law") for p in pieces)
-                       or own_law, extra=[ctx.reference] if ctx.reference is not None and not ref_scored else [])
-        bar = tqdm(total=len(jobs) * len(groups), unit="run", desc="blf-eval", file=sys.stderr, leave=False)
-    # (job, group, record, [the group's first episode, for the plots]); the table lists them in the
-    # order of the jobs and groups, whatever order they ran in
-    results: list[tuple[int, int, dict[str, Any], list[Any]]] = []
-    traj_files: list[Path] = []
-    waiting: list[tuple[int, int, dict[str, Any], tuple[str, int]]] = []  # records waiting for their law
-    running: list[str] = []
+        ctx = self.ctx
+        _ready_kernels(self.jobs, self.groups, self.args.observer,
+                       laws_needed=any(p.kind in ("law_env", "inner_law") for p in self.pieces) or self.own_law,
+                       extra=[ctx.reference] if ctx.reference is not None and not self.ref_scored else [])
+        self.bar = tqdm(total=len(self.jobs) * len(self.groups), unit="run", desc="blf-eval", file=sys.stderr,
+                        leave=False)
 
-    def finish(j: int, g: int, part: dict[str, Any], law: list[Any]) -> None:
-        name, kind, agent = jobs[j]
-        label, scs = groups[g]
-        prov = _group_provenance(label, scs, kwargs, getattr(args, "level", DEFAULT_LEVEL))
+    def finish(self, j: int, g: int, part: dict[str, Any], law: list[Any]) -> None:
+        """Summarize job ``j``'s episodes of group ``g`` into a record, against ``law``."""
+        args, ctx = self.args, self.ctx
+        name, kind, agent = self.jobs[j]
+        label, scs = self.groups[g]
+        prov = _group_provenance(label, scs, self.kwargs, getattr(args, "level", DEFAULT_LEVEL))
         if part.get("reused"):  # the episodes were kept from an earlier identical run (agents/lawcache.py)
             prov.update(law_reused=True)
         if agent is not None:
@@ -1263,90 +1283,88 @@ def _run(args: argparse.Namespace, groups: list[tuple[str, list[Scenario]]], age
             prov.update(observer=args.observer)
         own = agent is None and name == ctx.reference  # the reference is not scored against itself
         rec = summarize(part["stats"], name, kind, label, scs[0].sim.dt, wall_s=part["wall"], law=law,
-                        provenance=prov, reference=None if own else refs.get(g),
+                        provenance=prov, reference=None if own else self.refs.get(g),
                         reference_name=ctx.reference)
-        results.append((j, g, rec, part["first"]))
-        results.sort(key=lambda r: r[:2])
-        if bar is not None:
-            bar.update(1)
+        self.results.append((j, g, rec, part["first"]))
+        self.results.sort(key=lambda r: r[:2])
+        if self.bar is not None:
+            self.bar.update(1)
         if args.out is not None:  # finished records are kept if the run is interrupted
-            write_results([r[2] for r in results], args.out, meta_out)
+            write_results([r[2] for r in self.results], args.out, self.meta_out)
 
-    def item_ref_ready(w: tuple[int, int, dict[str, Any], tuple[str, int]]) -> bool:
+    def _ref_ready(self, w: tuple[int, int, dict[str, Any], tuple[str, int]]) -> bool:
         j, g = w[0], w[1]
-        return g in refs or (jobs[j][2] is None and jobs[j][0] == ctx.reference)
+        return g in self.refs or (self.jobs[j][2] is None and self.jobs[j][0] == self.ctx.reference)
 
-    def settle() -> None:
-        # every record whose law is known now
-        for item in [w for w in waiting if w[3] in laws and (ctx.reference is None or item_ref_ready(w))]:
-            waiting.remove(item)
-            finish(item[0], item[1], item[2], laws[item[3]])
+    def settle(self) -> None:
+        """Finish every record whose law (and reference) is known now."""
+        for item in [w for w in self.waiting
+                     if w[3] in self.laws and (self.ctx.reference is None or self._ref_ready(w))]:
+            self.waiting.remove(item)
+            self.finish(item[0], item[1], item[2], self.laws[item[3]])
 
-    def started(piece: _Piece) -> None:
-        running.append(piece.label)
-        if bar is not None:
-            bar.set_postfix_str(", ".join(running[-2:]) if n_jobs > 1 else piece.label)
+    def started(self, piece: _Piece) -> None:
+        self.running.append(piece.label)
+        if self.bar is not None:
+            self.bar.set_postfix_str(", ".join(self.running[-2:]) if self.n_jobs > 1 else piece.label)
 
-    def done(piece: _Piece, result: Any) -> None:
-        if piece.label in running:
-            running.remove(piece.label)
+    def done(self, piece: _Piece, result: Any) -> None:
+        """Take a finished piece's result: a record waiting for its law, or a law or reference."""
+        if piece.label in self.running:
+            self.running.remove(piece.label)
         if piece.kind == "baseline":
             name, g = piece.args
-            if name == "proposed" and own_law:
-                laws.setdefault(("inner", g), result["stats"])  # the law is this row itself
-            if ref_scored and name == ctx.reference:
-                refs.setdefault(g, result["stats"])  # the reference is this row itself
-            traj_files.extend(result["files"])
-            waiting.append((piece.job, g, result, ("inner", g)))
+            if name == "proposed" and self.own_law:
+                self.laws.setdefault(("inner", g), result["stats"])  # the law is this row itself
+            if self.ref_scored and name == self.ctx.reference:
+                self.refs.setdefault(g, result["stats"])  # the reference is this row itself
+            self.traj_files.extend(result["files"])
+            self.waiting.append((piece.job, g, result, ("inner", g)))
         elif piece.kind == "inner_law":
-            laws[("inner", piece.args[0])] = result
+            self.laws[("inner", piece.args[0])] = result
         elif piece.kind == "reference":
-            refs[piece.args[0]] = result
+            self.refs[piece.args[0]] = result
         elif piece.kind == "law_env":
             for g, stats in zip(piece.args[1], result):
-                laws[(_law_tag(piece.args[0]), g)] = stats
+                self.laws[(_law_tag(piece.args[0]), g)] = stats
         else:
             j = piece.job
-            traj_files.extend(result["files"])
+            self.traj_files.extend(result["files"])
             for g, (stats, first) in enumerate(result["per"]):
-                waiting.append((j, g, {"stats": stats, "first": first, "wall": result["walls"][g],
-                                       "report": result.get("report")}, (law_tags[j], g)))
-        settle()
+                self.waiting.append((j, g, {"stats": stats, "first": first, "wall": result["walls"][g],
+                                            "report": result.get("report")}, (self.law_tags[j], g)))
+        self.settle()
 
-    try:
-        _execute(ctx, pieces, workers, done, started)
-    except KeyboardInterrupt:
-        print("\nblf-eval: interrupted" + (f"; finished records were saved to {args.out / 'results.json'}, "
-                                           "and manifest.json marks the set incomplete" if args.out else ""),
-              file=sys.stderr)
-        return 130
-    finally:
-        if bar is not None:
-            bar.close()
-    records = [r[2] for r in results]
-    print(_table(records))
-    print("\n" + textwrap.fill(
-        "RMSE per joint, pooled over the group's episodes, in degrees; score: score_vs_law, the geometric mean "
-        "over joints of the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs "
-        "(per episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: the "
-        "worst joint's violating fraction; fail: share of episodes with a violation or divergence; cert: "
-        "certificate_broken, the share of episodes where the policy violates and the law alone, on the same "
-        "scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half of the episodes; "
-        "excess (largest distance beyond a bound) and margin (closest approach to a bound, negative when "
-        "beyond): worst joint, in degrees; 1st viol: earliest violation (s); torques in N m per joint; div: yes "
-        "when an episode's simulation diverged (results.json: diverged). Names longer than "
-        f"{TABLE_NAME_MAX} characters are shortened here, not in results.json.", 100))
-    if args.out is not None:
-        files = list(write_results(records, args.out, meta_out))
-        written = [] if args.no_plots else _plots([(r[2], r[3]) for r in results], args.out)
-        files += written + traj_files
-        # last, so that a complete manifest means every file above is in place
-        manifest = finish_output_set(args.out, files, meta_out.get("command"))
-        print(f"wrote {args.out / 'results.json'}, {args.out / 'results.csv'}"
-              + (f", {len(written)} plots" if written else "")
-              + (f", {len(files) - 2 - len(written)} trajectory files" if args.save_traj else "")
-              + f" and, last, {manifest}")
-    return 0
+    def report(self) -> None:
+        """Print the table and its legend; write the results, plots and manifest under --out."""
+        args = self.args
+        records = [r[2] for r in self.results]
+        print(_table(records))
+        print("\n" + textwrap.fill(_LEGEND, 100))
+        if args.out is not None:
+            files = list(write_results(records, args.out, self.meta_out))
+            written = [] if args.no_plots else _plots([(r[2], r[3]) for r in self.results], args.out)
+            files += written + self.traj_files
+            # last, so that a complete manifest means every file above is in place
+            manifest = finish_output_set(args.out, files, self.meta_out.get("command"))
+            print(f"wrote {args.out / 'results.json'}, {args.out / 'results.csv'}"
+                  + (f", {len(written)} plots" if written else "")
+                  + (f", {len(files) - 2 - len(written)} trajectory files" if args.save_traj else "")
+                  + f" and, last, {manifest}")
+
+
+_LEGEND = (
+    "RMSE per joint, pooled over the group's episodes, in degrees; score: score_vs_law, the geometric mean "
+    "over joints of the law's RMSE over the policy's (1 = the law, higher is better), on the pooled RMSEs "
+    "(per episode in results.json). viol: violating 1 ms samples summed over joints and episodes; frac: the "
+    "worst joint's violating fraction; fail: share of episodes with a violation or divergence; cert: "
+    "certificate_broken, the share of episodes where the policy violates and the law alone, on the same "
+    "scenario and noise, does not. CVaR: mean RMSE (averaged over joints) of the worst half of the episodes; "
+    "excess (largest distance beyond a bound) and margin (closest approach to a bound, negative when "
+    "beyond): worst joint, in degrees; 1st viol: earliest violation (s); torques in N m per joint; div: yes "
+    "when an episode's simulation diverged (results.json: diverged). Names longer than "
+    f"{TABLE_NAME_MAX} characters are shortened here, not in results.json.")
+"""The printed table's legend."""
 
 
 if __name__ == "__main__":

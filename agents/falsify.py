@@ -16,11 +16,11 @@ in degrees: the smallest margin to a bound, negative beyond it. rho < 0 exactly 
 leaves a bound in an episode where the law keeps them all (a counterexample); where the law itself
 fails, rho >= 0 (the episode says nothing about the policy's certificate), and on the law itself
 rho = |rho_law| >= 0, so the law has no counterexample by definition. rho_x is what
-``blf_gym.metrics.episode_stats`` keeps per joint (``margin``); tests/test_falsify.py checks it
+``blf_gym.results.metrics.episode_stats`` keeps per joint (``margin``); tests/test_falsify.py checks it
 against rtamt's STL monitor on a recorded episode.
 
 **The search**: each case is the paper's 0.1 Hz preset with every knob of
-``blf_gym.scenarios.SAFE_RANGES`` set (each joint's initial error apart) and a noise seed. The
+``blf_gym.envs.scenarios.SAFE_RANGES`` set (each joint's initial error apart) and a noise seed. The
 edges of the box are tried first (its centre, each knob at either end with the others centred,
 all low, all high, and seeded draws among its corners), then Optuna's sampler (TPE by default,
 CMA-ES on request), seeded, proposes the rest, ``batch`` cases at a time, each batch one batched
@@ -47,7 +47,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import atomic_write_json, help_text
+from blf_gym.results.io import atomic_write_json, help_text
 
 BASE = "paper-0.1hz"
 """The preset every case varies (the training and stress suites draw around it too)."""
@@ -60,7 +60,7 @@ FIRST_CORNERS = 16
 def space(ranges: dict[str, tuple[float, float]] | None = None, n: int = 3) -> dict[str, tuple[float, float]]:
     """The searched box: each knob of ``ranges`` (default ``SAFE_RANGES``), a per-joint knob as one
     entry per joint (``initial_error_0`` ...), by name -> (low, high)."""
-    from blf_gym.scenarios import KNOBS, SAFE_RANGES, check_variations
+    from blf_gym.envs.scenarios import KNOBS, SAFE_RANGES, check_variations
 
     ranges = dict(SAFE_RANGES if ranges is None else ranges)
     per_joint = {k.name for k in KNOBS if k.per_joint}
@@ -83,8 +83,8 @@ def case_scenario(params: dict[str, float], box: dict[str, tuple[float, float]],
     """(Scenario, noise seed) of one case: the base preset with the case's knobs."""
     from dataclasses import replace
 
-    from blf_gym.params import preset
-    from blf_gym.scenarios import KNOBS, apply_variations
+    from blf_gym.model.params import preset
+    from blf_gym.envs.scenarios import KNOBS, apply_variations
 
     per_joint = {k.name for k in KNOBS if k.per_joint}
     knobs: dict[str, Any] = {}
@@ -155,7 +155,7 @@ class Target:
             raise ValueError("blf-falsify: name exactly one of --agent DIR, --policy NAME or --controller NAME")
         spec = {"agent": agent, "policy": policy, "controller": controller, "residual_filter": residual_filter}
         if controller is not None:
-            from blf_gym.registry import available_controllers
+            from blf_gym.plugins.registry import available_controllers
 
             if controller not in available_controllers():
                 raise ValueError(f"blf-falsify: --controller must be one of {available_controllers()}, got {controller!r}")
@@ -180,12 +180,12 @@ class Target:
 
     def margins(self, scenarios: Sequence[Any], seeds: Sequence[int]) -> tuple[np.ndarray, np.ndarray, list[Any]]:
         """(policy's rho, the law's rho, the policy's EpisodeStats) on each scenario, degrees."""
-        from blf_gym.metrics import METRIC_CHANNELS, episode_stats
+        from blf_gym.results.metrics import METRIC_CHANNELS, episode_stats
 
         from .evaluate import agent_group_episodes, law_reference_groups
 
         if self.kind == "controller":
-            from blf_gym.simulate import LANES, simulate_batch
+            from blf_gym.kernel.simulate import LANES, simulate_batch
 
             pol = [episode_stats(t) for t in simulate_batch(scenarios, self.name, noise_seeds=seeds, lanes=LANES)]
             law = (pol if self.name == "proposed" else
@@ -360,7 +360,7 @@ def _parser() -> argparse.ArgumentParser:
                    "(barrier, cbf, barrier:handback=0.0033, barrier:handback=0.0033,lookahead=0.35) or 'none' "
                    "(default: the agent's own)")
     p.add_argument("--ranges", metavar="JSON", help="a JSON file of knob -> [low, high] to search instead of "
-                   "SAFE_RANGES (default: blf_gym.scenarios.SAFE_RANGES)")
+                   "SAFE_RANGES (default: blf_gym.envs.scenarios.SAFE_RANGES)")
     p.add_argument("--budget", type=int, default=500, help="simulations per search (default 500)")
     p.add_argument("--searches", type=int, default=1, help="independent searches, seeds SEED, SEED+1, ... (default 1)")
     p.add_argument("--seed", type=int, default=0, help="the first search's seed (default 0)")
@@ -378,7 +378,7 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from blf_gym.metrics import provenance
+    from blf_gym.results.metrics import provenance
 
     args = _parser().parse_args(argv)
     try:

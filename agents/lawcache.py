@@ -5,14 +5,14 @@ law's episodes: on the inner path for the baselines' rows (and the law's own row
 env path for the agents' scores. They take 15-30 s per set on two cores, and they do not change
 unless the code does: given the code, the scenarios, the noise seeds and the env arguments, the
 closed loop is deterministic to the bit. So ``blf-eval`` keeps each set it computes, reduced to its
-:class:`blf_gym.metrics.EpisodeStats`, and serves it again when every input is the same.
+:class:`blf_gym.results.metrics.EpisodeStats`, and serves it again when every input is the same.
 
 What must be the same (all folded into one sha256 key, the file's name):
 
 * the source of every module the result depends on: every ``.py`` file of ``blf_gym``,
   ``baselines`` and ``agents``, and of the top-level package of each plug-in the law runs with (its
   controller and observer, found through their entry points), and the import closure of the kernel
-  and of each plug-in module (:func:`blf_gym.sources.digest`), which follows a plug-in's imports
+  and of each plug-in module (:func:`blf_gym.jit.sources.digest`), which follows a plug-in's imports
   out of its package into local code;
 * numpy's, numba's and llvmlite's versions, Python's, and the CPU numba compiles for (its name and
   features: the machine code, and so the last bits, depend on them);
@@ -40,9 +40,9 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym import sources
-from blf_gym.io import atomic_write_text, cache_dir
-from blf_gym.metrics import EpisodeStats
+from blf_gym.jit import sources
+from blf_gym.results.io import atomic_write_text, cache_dir
+from blf_gym.results.metrics import EpisodeStats
 
 __all__ = ["code_digest", "law_key", "load_law", "store_law"]
 
@@ -94,7 +94,7 @@ def code_digest(controller: str = "proposed", observer: str = "leso") -> str:
         h.update(f.read_bytes())
     # and the import closure of the law's kernel and of each plug-in module: what a plug-in imports
     # from outside its own package (a local helper module) is compiled into the kernel too
-    h.update(sources.digest("blf_gym.simulate", *_plugin_modules(controller, observer)).encode())
+    h.update(sources.digest("blf_gym.kernel.simulate", *_plugin_modules(controller, observer)).encode())
     host = f"{llvm.get_host_cpu_name()} {llvm.get_host_cpu_features().flatten()}"
     for part in (np.__version__, numba.__version__, llvmlite.__version__, platform.python_version(),
                  platform.machine(), host):
@@ -130,7 +130,7 @@ _FOLDER: Path | None = None
 
 def folder() -> Path:
     """Where the law's episodes are kept: ``law`` in blf-gym's cache folder
-    (:func:`blf_gym.io.cache_dir`) unless :func:`use_folder` named another."""
+    (:func:`blf_gym.results.io.cache_dir`) unless :func:`use_folder` named another."""
     return _FOLDER if _FOLDER is not None else cache_dir() / "law"
 
 

@@ -89,7 +89,7 @@ def read_json_object(path: Path, what: str, hint: str = "") -> dict[str, Any]:
 def scoring_env_kwargs(env_kwargs: dict[str, Any]) -> dict[str, Any]:
     """The keyword arguments of the env blf-eval scores an agent in, from the metadata's
     ``env_kwargs``: those of :data:`SCORING_REPLACES` dropped, no reward terms (``reward_weights={}``)
-    and termination off. ``blf_gym.envcore.EnvCore(n, record=True, threads=..., **scoring_env_kwargs(kw))``
+    and termination off. ``blf_gym.envs.envcore.EnvCore(n, record=True, threads=..., **scoring_env_kwargs(kw))``
     is ``agents.evaluate.evaluate_agent``'s env."""
     kw = {k: v for k, v in env_kwargs.items() if k not in SCORING_REPLACES}
     kw.update(reward_weights={}, terminate_on_violation=False)
@@ -118,7 +118,7 @@ def _field_in(message: str, keys: list[str]) -> str | None:
 
 def _check_metadata(meta: dict[str, Any], meta_path: Path) -> None:
     """The checks that need the metadata alone: name, mode, env_kwargs' type and keys."""
-    from blf_gym.envcore import check_env_kwargs
+    from blf_gym.envs.envcore import check_env_kwargs
 
     from blf_gym import ENV_IDS
 
@@ -202,11 +202,11 @@ def _scoring_core(meta: dict[str, Any], meta_path: Path):
     """The env blf-eval would score the agent in, with two arms; the env's own refusal, as one line
     naming the env_kwargs field. Building it loads (or, on a first run, compiles) the closed-loop
     kernel of the agent's controller, observer and filter: the batch build (two arms or more step
-    in blocks of four, blf_gym.simulate.ClosedLoop), which blf-eval's batches then step and a
+    in blocks of four, blf_gym.kernel.simulate.ClosedLoop), which blf-eval's batches then step and a
     single arm takes when its own build is not compiled, kept in memory and in numba's disk cache,
     so no second compile follows. (Only an agent run through another filter, blf-eval
     --residual-filter, needs a kernel besides this one.)"""
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     kw = scoring_env_kwargs(meta["env_kwargs"])
     try:
@@ -223,7 +223,7 @@ def _check_spaces(model: Any, meta: dict[str, Any], meta_path: Path, model_path:
     import numpy as np
     from gymnasium import spaces
 
-    from blf_gym.envcore import observation_layout
+    from blf_gym.envs.envcore import observation_layout
 
     from blf_gym import ENV_IDS
 
@@ -293,7 +293,7 @@ def record_file_hashes(folder: str | Path) -> dict[str, str]:
     """Write the sha256 of the folder's model and statistics into its ``metadata.json`` (``files``),
     atomically, leaving every other field as it is; returns them. For a folder written before the
     hashes existed, or one whose files you replaced on purpose."""
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     folder = Path(folder)
     meta_path = folder / "metadata.json"
@@ -392,14 +392,14 @@ POLICY_PREFIX = "policy:"
 
 def load_policy(name: str) -> tuple[Any, dict[str, Any], None]:
     """(policy, metadata, None) for a policy registered in the ``blf_gym.policies`` entry points
-    (``blf_gym.registry.make_policy``), shaped as :func:`load_agent`'s answer so blf-eval scores it
+    (``blf_gym.plugins.registry.make_policy``), shaped as :func:`load_agent`'s answer so blf-eval scores it
     as it scores an agent: the metadata names it, says plain mode and holds the policy's own
     ``env_kwargs``; there are no normalization statistics. ``name`` may carry
     :data:`POLICY_PREFIX`, and parameters of the policy's factory as ``NAME:key=value,...``
     (``floor:control_period=0.001``), named so in the records. The env it asks for is checked as an
     agent's is."""
-    from blf_gym.blocks import parse_filter_spec
-    from blf_gym.registry import make_policy
+    from blf_gym.plugins.blocks import parse_filter_spec
+    from blf_gym.plugins.registry import make_policy
 
     name = name[len(POLICY_PREFIX):] if name.startswith(POLICY_PREFIX) else name
     try:

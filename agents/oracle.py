@@ -25,8 +25,8 @@ from typing import Sequence
 
 import numpy as np
 
-from blf_gym.io import help_text
-from blf_gym.params import PRESETS
+from blf_gym.results.io import help_text
+from blf_gym.model.params import PRESETS
 
 __all__ = ["main", "oracle_rmse"]
 
@@ -35,9 +35,9 @@ def oracle_rmse(scenarios, control_period: float = 0.01, oracle: bool = True,
                 residual_scale: float = 100.0) -> np.ndarray:
     """Pooled RMSE (deg, per joint) of the law plus the oracle residual (or a zero residual) over
     ``scenarios``, all stepped together in one batched env."""
-    from blf_gym.envcore import EnvCore
-    from blf_gym.dynamics import mass_matrix
-    from blf_gym.metrics import summarize
+    from blf_gym.envs.envcore import EnvCore
+    from blf_gym.model.dynamics import mass_matrix
+    from blf_gym.results.metrics import summarize
 
     core = EnvCore(len(scenarios), controller="proposed", residual_scale=residual_scale, reward_weights={},
                    control_period=control_period, record=True, terminate_on_violation=False, threads=1)

@@ -37,7 +37,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import help_text
+from blf_gym.results.io import help_text
 
 __all__ = ["main", "pool_seeds", "reference_records", "seed_statistics"]
 
@@ -162,7 +162,7 @@ def _scores_against(recs: Sequence[dict[str, Any]], yardstick: dict[str, Any]) -
     """Each seed's per-episode score against another policy's record on the same episodes (the
     geometric mean over joints of its RMSE over the seed's, as ``score_vs_law`` is), or None when
     an episode has no RMSE on either side."""
-    from blf_gym.metrics import score_vs_law
+    from blf_gym.results.metrics import score_vs_law
 
     ref = yardstick["per_episode_rmse_deg"]
     rows = []
@@ -355,19 +355,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             return 2
         print(text)
         if args.out is not None:
-            from blf_gym.io import atomic_write_text
+            from blf_gym.results.io import atomic_write_text
 
             atomic_write_text(args.out, text)
         return 0
-    from blf_gym.io import atomic_write_text
-    from blf_gym.metrics import read_results
+    from blf_gym.results.io import atomic_write_text
+    from blf_gym.results.metrics import read_results
 
     try:
         records = read_results(args.results)
     except (OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    from blf_gym.io import MANIFEST, verify_output_set
+    from blf_gym.results.io import MANIFEST, verify_output_set
 
     if (args.results.parent / MANIFEST).exists():  # sets written before manifests existed have none
         problem = verify_output_set(args.results.parent)
@@ -382,7 +382,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     table = _markdown(rows) + ("\n" + _stats_markdown(stats) if stats else "")
     print(table)
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     json_path = args.json if args.json is not None else args.results.parent / "report.json"
     atomic_write_json(json_path, {"results": str(args.results), "pooled": rows, "statistics": stats,

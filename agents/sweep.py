@@ -61,12 +61,12 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
-from blf_gym.io import atomic_write_json, atomic_write_text, help_text
-from blf_gym.params import is_integer, is_real
+from blf_gym.results.io import atomic_write_json, atomic_write_text, help_text
+from blf_gym.model.params import is_integer, is_real
 
 from .config import (CONFIG_KEYS, RunSpec, TrainConfig, add_config_options, check_config, env_keys, parse_overrides, set_dotted,
                      shipped_config)
-from .evaluate import CURVE_GROUPS
+from blf_gym.envs.protocol import CURVE_GROUPS
 from .train import PAUSE_ENV
 
 __all__ = ["main", "load_sweep", "score_point", "law_levels", "run_sweep", "trial_config"]
@@ -90,7 +90,7 @@ SWEEP_EXTRA = "pip install -c constraints-cpu.txt -e \".[sweep]\"  (or pip insta
 def law_levels(suite_seeds: int, duration: float | None = None, controller: str = "proposed",
                level: int = 3) -> dict[str, list[float]]:
     """RMSE (deg, per joint) of a baseline controller on the learning-curve scenarios at ``level``."""
-    from blf_gym.metrics import summarize
+    from blf_gym.results.metrics import summarize
 
     from .evaluate import controller_episodes, curve_scenarios
 
@@ -107,7 +107,7 @@ def score_point(point: dict[str, Any], law: dict[str, list[float]], suite_seeds:
     pooled ``score_vs_law`` (geometric mean of the three groups' scores, which is 1 / the geometric
     mean of the nine per-joint ratios), failures, and the sweep's ``objective`` (see the module
     docstring: -failed fraction if any curve episode failed, else score_vs_law)."""
-    from blf_gym.metrics import score_vs_law
+    from blf_gym.results.metrics import score_vs_law
 
     row: dict[str, Any] = {"timesteps": int(point["timesteps"]), "wall_s": float(point.get("wall_s", 0.0))}
     ratios, failed, episodes = [], 0, 0
@@ -226,9 +226,18 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
     """Read and check a sweep file (or an already-parsed mapping); returns the normalized spec.
 
     Raises ValueError naming the key and the accepted values for anything wrong."""
-    import yaml
+    raw, spec, where, folder = _read_sweep(path, folder, overrides)
+    _check_sweep(spec, where)
+    _check_scheduler(spec, where)
+    _sweep_configs(raw, spec, where, folder)
+    return spec
 
-    from .train import load_config
+
+def _read_sweep(path: str | Path | dict[str, Any], folder: Path | None, overrides: Mapping[str, Any] | None
+                ) -> tuple[dict[str, Any], dict[str, Any], str, Path]:
+    """(the file's mapping, the spec with every default filled in, where to say an error is, the
+    folder config paths are relative to)."""
+    import yaml
 
     if isinstance(path, dict):
         raw, where, folder = copy.deepcopy(path), "sweep", Path(folder or ".")
@@ -256,6 +265,11 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         "space": raw.get("space") or {}, "scheduler": raw.get("scheduler"), "concurrency": raw.get("concurrency"),
         "time_budget_s": raw.get("time_budget_s"), "note": raw.get("note"),
     }
+    return raw, spec, where, folder
+
+
+def _check_sweep(spec: dict[str, Any], where: str) -> None:
+    """The spec's name, run, search, budget, overrides and space, as :func:`load_sweep` accepts them."""
     name = spec["name"]
     if not isinstance(name, str) or not name or not all(c.isalnum() or c in "-_." for c in name):
         raise _err(where, f"name must be letters, digits, '-', '_' or '.', got {name!r}")
@@ -292,6 +306,10 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         if key in spec["overrides"]:
             raise _err(where, f"{key!r} is both in overrides and in space")
         _check_dist(key, dist, spec["search"], where)
+
+
+def _check_scheduler(spec: dict[str, Any], where: str) -> None:
+    """The ASHA scheduler's keys, their defaults filled in."""
     sched = spec["scheduler"]
     if sched is not None:
         if not isinstance(sched, dict) or set(sched) != {"asha"} or not isinstance(sched["asha"] or {}, dict):
@@ -307,7 +325,12 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
             raise _err(where, f"asha.reduction_factor must be a number > 1, got {rf!r}")
         spec["scheduler"] = {"asha": asha}
 
-    # the base config, and every config file a grid names
+
+def _sweep_configs(raw: dict[str, Any], spec: dict[str, Any], where: str, folder: Path) -> None:
+    """The base config, every config file a grid names (checked with the overrides), and the
+    scoring they share (``curve_suite_seeds``, ``duration``), into ``spec``."""
+    from .train import load_config
+
     base = raw.get("base")
     if base is None:  # the shipped config, or TrainConfig's defaults for an algorithm that ships none
         shipped = shipped_config(spec["algo"], spec["mode"])
@@ -336,7 +359,6 @@ def load_sweep(path: str | Path | dict[str, Any], folder: Path | None = None,
         raise _err(where, "all configs must share curve_suite_seeds and env.duration (every trial is scored "
                           f"on the same scenarios); got {sorted(scoring, key=str)}")
     spec["curve_suite_seeds"], spec["duration"] = scoring.pop()
-    return spec
 
 
 def trial_config(spec: dict[str, Any], params: dict[str, Any]) -> dict[str, Any]:
@@ -471,134 +493,141 @@ def _metrics(row: dict[str, Any], run: str, seed: int, node: str | None) -> dict
 def _trainable():
     """The Ray Tune trainable: one blf-train process per trial, its learning-curve points reported
     as they appear. A class (not a function) so that a trial the scheduler stops gets ``cleanup``,
-    which ends blf-train with SIGTERM (a final checkpoint) before Ray ends the worker."""
+    which ends blf-train with SIGTERM (a final checkpoint) before Ray ends the worker. Its methods
+    are :class:`_TrialLogic`'s; Ray is imported only here."""
     from ray import tune
 
-    class BLFTrial(tune.Trainable):
-        def setup(self, config, spec=None, law=None, out=None, poll_s=1.0, deadline=None):  # noqa: D401 - Ray's hook
-            import yaml
+    return type("BLFTrial", (_TrialLogic, tune.Trainable), {"__module__": __name__})
 
-            self.spec, self.law, self.poll_s = spec, law, poll_s
-            # the wall-clock budget's end (time.time()), or None: once it passes, blf-train gets its
-            # SIGTERM from here, without waiting for a curve point the stopper could act on (on a
-            # loaded machine the next point could be minutes away)
-            self.deadline, self.termed, self.handshake = deadline, False, False
-            params, seed, name = trial_identity(config, spec)
-            self.seed = seed
-            run = self.run = Path(out) / "runs" / name
-            run.mkdir(parents=True, exist_ok=True)
-            cfg_path = run / "config.yaml"
-            atomic_write_text(cfg_path, yaml.safe_dump(trial_config(spec, params), sort_keys=False))
-            args = trial_command(spec, seed, cfg_path, run)
-            import ray
 
-            self.node = ray.get_runtime_context().get_node_id()
-            atomic_write_json(run / "trial.json", {
-                "run": run.name, "seed": seed, "params": params, "config_id": config_id(params),
-                "command": " ".join(["blf-train", *args]), "sweep": spec["name"], "node_id": self.node})
-            self.reported, self.queue, self.last, self.proc = -1, [], None, None
-            meta_path = run / "metadata.json"
-            prior = json.loads(meta_path.read_text()) if meta_path.is_file() else None
-            if prior is not None and prior.get("completed") and int(prior.get("timesteps", 0)) >= spec["timesteps"]:
-                return  # a finished run (after a restore): its curve is reported, nothing is trained
-            if prior is not None or (run / "checkpoints").is_dir():
-                args.append("--resume")
-            # on Linux, blf-train stops itself after each curve point (see _paused) until the next
-            # step() lets it go on, so that a trial stopped at a rung has trained to that rung
-            self.handshake = sys.platform.startswith("linux") and hasattr(signal, "SIGSTOP")
-            env = dict(os.environ, **({PAUSE_ENV: "1"} if self.handshake else {}))
-            with open(run / "train.log", "ab") as log:
-                self.proc = subprocess.Popen(
-                    [sys.executable, "-m", "agents.train", *args], stdout=log, stderr=subprocess.STDOUT, env=env,
-                    preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+class _TrialLogic:
+    """The methods of :func:`_trainable`'s class (Ray's hooks ``setup``, ``step``, ``save_checkpoint``,
+    ``load_checkpoint`` and ``cleanup``), kept apart from ``tune.Trainable`` so that this module
+    imports no Ray until a sweep runs."""
 
-        def _refresh(self) -> None:
-            curve = self.run / "eval" / "curve.json"
-            if not curve.is_file():
-                return
-            try:
-                pts = json.loads(curve.read_text())["points"]
-            except (OSError, ValueError, KeyError):
-                return
-            for p in pts:
-                if p["timesteps"] > self.reported:
-                    self.queue.append(p)
-                    self.reported = p["timesteps"]
+    def setup(self, config, spec=None, law=None, out=None, poll_s=1.0, deadline=None):  # noqa: D401 - Ray's hook
+        import yaml
 
-        def _alive(self) -> bool:
-            return self.proc is not None and self.proc.poll() is None
+        self.spec, self.law, self.poll_s = spec, law, poll_s
+        # the wall-clock budget's end (time.time()), or None: once it passes, blf-train gets its
+        # SIGTERM from here, without waiting for a curve point the stopper could act on (on a
+        # loaded machine the next point could be minutes away)
+        self.deadline, self.termed, self.handshake = deadline, False, False
+        params, seed, name = trial_identity(config, spec)
+        self.seed = seed
+        run = self.run = Path(out) / "runs" / name
+        run.mkdir(parents=True, exist_ok=True)
+        cfg_path = run / "config.yaml"
+        atomic_write_text(cfg_path, yaml.safe_dump(trial_config(spec, params), sort_keys=False))
+        args = trial_command(spec, seed, cfg_path, run)
+        import ray
 
-        def _paused(self) -> bool:
-            """Whether blf-train has stopped itself (state T in /proc/<pid>/stat). A point becomes
-            visible just before the process stops; the trial waits for the stop before it reports
-            the point, so its SIGCONT for the next point cannot arrive before the SIGSTOP."""
-            try:
-                stat = Path(f"/proc/{self.proc.pid}/stat").read_text()
-            except OSError:
-                return False
-            return stat[stat.rfind(")") + 2:][:1] in ("T", "t")
+        self.node = ray.get_runtime_context().get_node_id()
+        atomic_write_json(run / "trial.json", {
+            "run": run.name, "seed": seed, "params": params, "config_id": config_id(params),
+            "command": " ".join(["blf-train", *args]), "sweep": spec["name"], "node_id": self.node})
+        self.reported, self.queue, self.last, self.proc = -1, [], None, None
+        meta_path = run / "metadata.json"
+        prior = json.loads(meta_path.read_text()) if meta_path.is_file() else None
+        if prior is not None and prior.get("completed") and int(prior.get("timesteps", 0)) >= spec["timesteps"]:
+            return  # a finished run (after a restore): its curve is reported, nothing is trained
+        if prior is not None or (run / "checkpoints").is_dir():
+            args.append("--resume")
+        # on Linux, blf-train stops itself after each curve point (see _paused) until the next
+        # step() lets it go on, so that a trial stopped at a rung has trained to that rung
+        self.handshake = sys.platform.startswith("linux") and hasattr(signal, "SIGSTOP")
+        env = dict(os.environ, **({PAUSE_ENV: "1"} if self.handshake else {}))
+        with open(run / "train.log", "ab") as log:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "agents.train", *args], stdout=log, stderr=subprocess.STDOUT, env=env,
+                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
 
-        def step(self):
-            self._go_on()
+    def _refresh(self) -> None:
+        curve = self.run / "eval" / "curve.json"
+        if not curve.is_file():
+            return
+        try:
+            pts = json.loads(curve.read_text())["points"]
+        except (OSError, ValueError, KeyError):
+            return
+        for p in pts:
+            if p["timesteps"] > self.reported:
+                self.queue.append(p)
+                self.reported = p["timesteps"]
+
+    def _alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def _paused(self) -> bool:
+        """Whether blf-train has stopped itself (state T in /proc/<pid>/stat). A point becomes
+        visible just before the process stops; the trial waits for the stop before it reports
+        the point, so its SIGCONT for the next point cannot arrive before the SIGSTOP."""
+        try:
+            stat = Path(f"/proc/{self.proc.pid}/stat").read_text()
+        except OSError:
+            return False
+        return stat[stat.rfind(")") + 2:][:1] in ("T", "t")
+
+    def step(self):
+        self._go_on()
+        self._refresh()
+        # the point at the budget is held until blf-train has saved the model and exited:
+        # reaching max_t makes Ray stop the trial, and the run must be complete by then; any
+        # other point is reported once blf-train has paused after it (or exited)
+        while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]
+                                 or (self.handshake and len(self.queue) == 1 and not self._paused())):
+            time.sleep(min(self.poll_s, 0.05) if self.queue else self.poll_s)
             self._refresh()
-            # the point at the budget is held until blf-train has saved the model and exited:
-            # reaching max_t makes Ray stop the trial, and the run must be complete by then; any
-            # other point is reported once blf-train has paused after it (or exited)
-            while self._alive() and (not self.queue or self.queue[0]["timesteps"] >= self.spec["timesteps"]
-                                     or (self.handshake and len(self.queue) == 1 and not self._paused())):
-                time.sleep(min(self.poll_s, 0.05) if self.queue else self.poll_s)
-                self._refresh()
-                self._stop_at_deadline()
-            exited = self.proc is None or self.proc.poll() is not None
-            if exited:
-                self._refresh()
-                # 130: blf-train's exit after the SIGTERM sent at the budget's end (its final save done)
-                if self.proc is not None and self.proc.returncode != 0 and not (self.termed and
-                                                                                self.proc.returncode == 130):
-                    tail = (self.run / "train.log").read_text(errors="replace").strip().splitlines()[-5:]
-                    raise RuntimeError(f"blf-train exited with {self.proc.returncode} for {self.run.name}: "
-                                       + " | ".join(tail))
-            if self.queue:
-                row = score_point(self.queue.pop(0), self.law, self.spec["curve_suite_seeds"])
-                self.last = _metrics(row, self.run.name, self.seed, self.node)
-            elif self.last is None:
-                raise RuntimeError(f"blf-train wrote no learning curve for {self.run.name}")
-            return dict(self.last, done=exited and not self.queue)
+            self._stop_at_deadline()
+        exited = self.proc is None or self.proc.poll() is not None
+        if exited:
+            self._refresh()
+            # 130: blf-train's exit after the SIGTERM sent at the budget's end (its final save done)
+            if self.proc is not None and self.proc.returncode != 0 and not (self.termed and
+                                                                            self.proc.returncode == 130):
+                tail = (self.run / "train.log").read_text(errors="replace").strip().splitlines()[-5:]
+                raise RuntimeError(f"blf-train exited with {self.proc.returncode} for {self.run.name}: "
+                                   + " | ".join(tail))
+        if self.queue:
+            row = score_point(self.queue.pop(0), self.law, self.spec["curve_suite_seeds"])
+            self.last = _metrics(row, self.run.name, self.seed, self.node)
+        elif self.last is None:
+            raise RuntimeError(f"blf-train wrote no learning curve for {self.run.name}")
+        return dict(self.last, done=exited and not self.queue)
 
-        def _go_on(self) -> None:
-            """SIGCONT to a blf-train that paused after its last point (harmless to a running one):
-            Ray has asked for the next point. Its numbers do not depend on the pause; its wall
-            clock counts it."""
-            if self.handshake and self._alive():
-                self.proc.send_signal(signal.SIGCONT)
+    def _go_on(self) -> None:
+        """SIGCONT to a blf-train that paused after its last point (harmless to a running one):
+        Ray has asked for the next point. Its numbers do not depend on the pause; its wall
+        clock counts it."""
+        if self.handshake and self._alive():
+            self.proc.send_signal(signal.SIGCONT)
 
-        def _stop_at_deadline(self) -> None:
-            """SIGTERM to blf-train once the budget's end has passed and it has written its first curve
-            point (its handler is installed by then: it saves a final checkpoint and exits)."""
-            if (self.deadline is not None and not self.termed and self.reported >= 0 and self._alive()
-                    and time.time() >= self.deadline):
-                self.proc.send_signal(signal.SIGTERM)
-                self.termed = True
+    def _stop_at_deadline(self) -> None:
+        """SIGTERM to blf-train once the budget's end has passed and it has written its first curve
+        point (its handler is installed by then: it saves a final checkpoint and exits)."""
+        if (self.deadline is not None and not self.termed and self.reported >= 0 and self._alive()
+                and time.time() >= self.deadline):
+            self.proc.send_signal(signal.SIGTERM)
+            self.termed = True
 
-        def save_checkpoint(self, checkpoint_dir):
-            # the trial's real state is blf-train's own checkpoints in its run folder; Ray's
-            # checkpoint only records which run and how far its curve was reported
-            atomic_write_json(Path(checkpoint_dir) / "trial.json", {"run": str(self.run), "reported": self.reported})
+    def save_checkpoint(self, checkpoint_dir):
+        # the trial's real state is blf-train's own checkpoints in its run folder; Ray's
+        # checkpoint only records which run and how far its curve was reported
+        atomic_write_json(Path(checkpoint_dir) / "trial.json", {"run": str(self.run), "reported": self.reported})
 
-        def load_checkpoint(self, checkpoint):
-            pass  # setup already reconnected to the run folder (blf-train --resume)
+    def load_checkpoint(self, checkpoint):
+        pass  # setup already reconnected to the run folder (blf-train --resume)
 
-        def cleanup(self):
-            p = self.proc
-            if p is not None and p.poll() is None:  # stopped by the scheduler or by Ctrl-C
-                p.send_signal(signal.SIGTERM)
-                self._go_on()  # a paused process takes its SIGTERM when it runs again
-                try:
-                    p.wait(120)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+    def cleanup(self):
+        p = self.proc
+        if p is not None and p.poll() is None:  # stopped by the scheduler or by Ctrl-C
+            p.send_signal(signal.SIGTERM)
+            self._go_on()  # a paused process takes its SIGTERM when it runs again
+            try:
+                p.wait(120)
+            except subprocess.TimeoutExpired:
+                p.kill()
 
-    return BLFTrial
 
 
 # ---------------------------------------------------------------------------------------------
@@ -872,12 +901,8 @@ def _spec_digest(spec: dict[str, Any]) -> str:
     return hashlib.sha1(json.dumps(keep, sort_keys=True, default=str).encode()).hexdigest()
 
 
-def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concurrency: int | None = None,
-              storage: str | None = None, printer: Callable[[str], None] | None = None,
-              command: str | None = None) -> dict[str, Any]:
-    """Run (or resume) a sweep into ``out``; returns the final table and counts."""
-    printer = printer or (lambda s: print(s, file=sys.stderr, flush=True))
-    out = Path(out).resolve()
+def _stamp_out(spec: dict[str, Any], out: Path) -> None:
+    """Create ``out`` and stamp it with the spec's digest; ValueError if it holds another sweep."""
     out.mkdir(parents=True, exist_ok=True)
     digest = _spec_digest(spec)
     stamp = out / "sweep_spec.json"
@@ -888,22 +913,12 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
                              "choose another --out, or move it away to start again")
     else:
         atomic_write_json(stamp, {"digest": digest, "spec": spec})
-    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+
+
+def _ray_init(ray: Any, address: str | None) -> str | None:
+    """Start Ray: the cluster at ``address``, or a local instance; returns ``address``."""
     import logging
 
-    import optuna
-    import ray
-    from ray import tune
-
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-
-    from blf_gym.metrics import provenance
-
-    printer(f"blf-sweep: scoring the law on the curve scenarios ({spec['curve_suite_seeds']} suite episodes)")
-    # the benchmark's score is always against the proposed law, whatever the trials' inner law
-    law = law_levels(int(spec["curve_suite_seeds"]), spec["duration"], "proposed")
-    address = address or os.environ.get("RAY_ADDRESS")
     if address:
         ray.init(address=address, logging_level=logging.WARNING, log_to_driver=False)
     else:
@@ -915,6 +930,43 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         os.environ.setdefault("RAY_worker_niceness", "0")
         ray.init(num_cpus=os.cpu_count(), include_dashboard=False, logging_level=logging.WARNING,
                  log_to_driver=False)
+    return address
+
+
+def _previous_statuses(out: Path) -> dict[str, str]:
+    """The trials' statuses of an earlier run of the sweep in ``out`` (a trial that was running is
+    now stopped); empty for a new sweep."""
+    prev = out / "sweep.json"
+    if not prev.is_file():
+        return {}
+    try:
+        return {k: ("stopped" if v == "running" else v)
+                for k, v in json.loads(prev.read_text()).get("statuses", {}).items()}
+    except ValueError:
+        return {}
+
+
+def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concurrency: int | None = None,
+              storage: str | None = None, printer: Callable[[str], None] | None = None,
+              command: str | None = None) -> dict[str, Any]:
+    """Run (or resume) a sweep into ``out``; returns the final table and counts."""
+    printer = printer or (lambda s: print(s, file=sys.stderr, flush=True))
+    out = Path(out).resolve()
+    _stamp_out(spec, out)
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+    os.environ.setdefault("RAY_AIR_NEW_OUTPUT", "0")
+    import optuna
+    import ray
+    from ray import tune
+
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+    from blf_gym.results.metrics import provenance
+
+    printer(f"blf-sweep: scoring the law on the curve scenarios ({spec['curve_suite_seeds']} suite episodes)")
+    # the benchmark's score is always against the proposed law, whatever the trials' inner law
+    law = law_levels(int(spec["curve_suite_seeds"]), spec["duration"], "proposed")
+    address = _ray_init(ray, address or os.environ.get("RAY_ADDRESS"))
     try:
         cpus = int(ray.cluster_resources().get("CPU", 1))
         nodes = [n for n in ray.nodes() if n.get("Alive")]
@@ -923,14 +975,7 @@ def run_sweep(spec: dict[str, Any], out: Path, address: str | None = None, concu
         extra = {"command": command, "versions": prov["versions"], "git_commit": prov["git_commit"],
                  "ray": {"address": address or "local", "nodes": len(nodes), "cpus": cpus, "concurrency": conc}}
         total = n_trials(spec)
-        prev = out / "sweep.json"
-        statuses: dict[str, str] = {}
-        if prev.is_file():
-            try:
-                statuses = {k: ("stopped" if v == "running" else v)
-                            for k, v in json.loads(prev.read_text()).get("statuses", {}).items()}
-            except ValueError:
-                statuses = {}
+        statuses = _previous_statuses(out)
         printer(f"blf-sweep: {spec['name']}: {total} trials ({spec['search']}, {len(spec['seeds'])} seed(s)), "
                 f"{conc} at a time on {len(nodes)} node(s) with {cpus} CPU(s)")
         budget = _Budget(out, spec["time_budget_s"])

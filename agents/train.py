@@ -40,8 +40,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from blf_gym import ENV_IDS
-from blf_gym.io import atomic_write_json, help_text
-from blf_gym.levels import DEFAULT_LEVEL
+from blf_gym.results.io import atomic_write_json, help_text
+from blf_gym.envs.levels import DEFAULT_LEVEL
 
 from .config import (RunSpec, TrainConfig, add_config_options, apply_overrides, check_config, curriculum_scale,
                      parse_overrides, shipped_config)
@@ -145,7 +145,7 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
     from stable_baselines3.common.callbacks import BaseCallback
     from stable_baselines3.common.vec_env import VecNormalize
 
-    from blf_gym.metrics import summarize
+    from blf_gym.results.metrics import summarize
 
     from .evaluate import agent_episodes, curve_scenarios
 
@@ -500,7 +500,7 @@ def _segments(prior: dict[str, Any] | None, resume: bool, start_steps: int, comm
 def _save_final(model, ckpt_dir: Path, out: Path, state: dict[str, Any]) -> None:
     """The run's last checkpoint (``state`` stored with it), then ``model.zip`` and
     ``vecnormalize.pkl``, each written atomically."""
-    from blf_gym.io import atomic_path
+    from blf_gym.results.io import atomic_path
 
     from .checkpoints import save_checkpoint
 
@@ -738,7 +738,7 @@ class _Session:
     off-policy learner resumed without a full replay buffer, the refill that fills it first."""
 
     def __init__(self, plan: _Plan, start: _Start, cls) -> None:
-        from blf_gym.metrics import provenance
+        from blf_gym.results.metrics import provenance
 
         self.model, self.start = start.model, start
         self.continuing = start.steps > 0

@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from blf_gym.io import atomic_write_text, help_text
+from blf_gym.results.io import atomic_write_text, help_text
 
 from .config import add_config_options, parse_overrides
 from .sweep import law_levels, main as sweep_main  # noqa: F401 - law_levels is re-exported

@@ -2,7 +2,7 @@
 
 SB3 expects same-step resets with the last observation of an ended episode in
 ``infos[i]["terminal_observation"]`` and ``infos[i]["TimeLimit.truncated"]`` for truncations;
-this adapter provides exactly that on top of :class:`blf_gym.vector.PlanarBLFVectorEnv`.
+this adapter provides exactly that on top of :class:`blf_gym.envs.vector.PlanarBLFVectorEnv`.
 
 >>> from agents.vec_env import BLFVecEnv
 >>> venv = BLFVecEnv(8, controller="proposed", seed=0)   # doctest: +SKIP
@@ -18,7 +18,7 @@ import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from blf_gym.vector import PlanarBLFVectorEnv
+from blf_gym.envs.vector import PlanarBLFVectorEnv
 
 __all__ = ["ArmInfo", "BLFVecEnv"]
 

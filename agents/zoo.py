@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from blf_gym import ENV_IDS
-from blf_gym.io import atomic_write_text, os_error_message
+from blf_gym.results.io import atomic_write_text, os_error_message
 
 __all__ = ["convert"]
 

@@ -50,7 +50,7 @@ from typing import Any
 
 from numba import njit
 
-from blf_gym.blocks import ResidualFilter, mass_solve, mass_times, nominal_acceleration
+from blf_gym.plugins.blocks import ResidualFilter, mass_solve, mass_times, nominal_acceleration
 
 from .filters import innovation_exceeds
 from .params import params_from
@@ -98,6 +98,8 @@ class CBFFilterParams:
             raise ValueError(f"{o}.handback must be >= 0 rad (0: off), got {self.handback!r}")
 
 
+# long: the filter's apply is inlined into the kernel's step as one block (its checks, the QP's
+# closed form and its fall-backs share the per-joint work array); a split adds calls per joint
 @njit(cache=True, error_model="numpy", inline="always")
 def cbf_apply(residual, u_law, y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b, k_b_dot, k_b_ddot,
               u_max, gamma1, gamma2, e2_max, noise_fraction, handback, q_true, qd_true, x1_hat, nominal, work,

@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 
-from blf_gym.blocks import Controller, Observer
-from blf_gym.params import ArmParams
+from blf_gym.plugins.blocks import Controller, Observer
+from blf_gym.model.params import ArmParams
 
 from .cbf import cbf_filter
 from .filters import barrier_filter

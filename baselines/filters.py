@@ -33,7 +33,7 @@ from typing import Any
 
 from numba import njit
 
-from blf_gym.blocks import ResidualFilter
+from blf_gym.plugins.blocks import ResidualFilter
 
 from .params import params_from
 

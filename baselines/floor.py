@@ -25,11 +25,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.blocks import model_length, nominal_length, nominal_model_into, work_length
-from blf_gym.io import atomic_write_text, help_text
-from blf_gym.observation import (SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index,
+from blf_gym.plugins.blocks import model_length, nominal_length, nominal_model_into, work_length
+from blf_gym.results.io import atomic_write_text, help_text
+from blf_gym.envs.observation import (SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index,
                                  unsquash)
-from blf_gym.params import ArmParams, check_real
+from blf_gym.model.params import ArmParams, check_real
 
 from .classical import computed_torque_leso_output
 from .params import params_from, positive_vector
@@ -130,7 +130,7 @@ def _episode(sc: Any, seed: int, policy: FloorPolicy | None, period: float) -> t
     """One whole episode on ``sc`` with noise seed ``seed``: the floor at its period, or (``policy``
     None) the proposed law alone in the residual env at the same period. (RMSE per joint in degrees
     or None, failed, RMS over joints of the torque sampled once per agent step.)"""
-    from blf_gym.env import PlanarBLFEnv
+    from blf_gym.envs.env import PlanarBLFEnv
 
     kw = {"controller": "none"} if policy is not None else {"controller": "proposed"}
     env = PlanarBLFEnv(scenario=sc, control_period=period, terminate_on_violation=False, **kw)
@@ -159,7 +159,7 @@ def evaluate_floor_gains(points: Sequence[dict[str, float]], episodes: int = 10,
     geometric mean of their ``score_vs_law``. The result has :func:`baselines.gains.table`'s layout."""
     from tqdm import tqdm
 
-    from blf_gym.metrics import score_vs_law
+    from blf_gym.results.metrics import score_vs_law
 
     from .gains import selection_scenarios
 
@@ -198,7 +198,7 @@ def evaluate_floor_gains(points: Sequence[dict[str, float]], episodes: int = 10,
 def main(argv: Sequence[str] | None = None) -> int:
     """``python -m baselines.floor --out DIR``: the floor's gain search, written to DIR/gains.md and
     DIR/gains.json (atomically, with the command)."""
-    from blf_gym.metrics import provenance
+    from blf_gym.results.metrics import provenance
 
     from .gains import table
 
@@ -219,7 +219,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     result.update(command="python -m baselines.floor " + " ".join(sys.argv[1:] if argv is None else argv),
                   provenance=provenance())
     args.out.mkdir(parents=True, exist_ok=True)
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     atomic_write_json(args.out / "gains.json", result)
     note = ""

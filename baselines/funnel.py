@@ -41,8 +41,8 @@ from typing import Any
 
 from numba import njit
 
-from blf_gym.blocks import Controller, coriolis_times
-from blf_gym.params import ArmParams
+from blf_gym.plugins.blocks import Controller, coriolis_times
+from blf_gym.model.params import ArmParams
 
 from .params import params_from
 

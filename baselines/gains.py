@@ -35,12 +35,12 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from blf_gym.io import atomic_write_text, help_text
-from blf_gym.metrics import episode_stats, provenance, score_vs_law
-from blf_gym.params import preset
-from blf_gym.registry import available_controllers, make_controller
-from blf_gym.scenarios import sample_suite
-from blf_gym.simulate import simulate_batch
+from blf_gym.results.io import atomic_write_text, help_text
+from blf_gym.results.metrics import episode_stats, provenance, score_vs_law
+from blf_gym.model.params import preset
+from blf_gym.plugins.registry import available_controllers, make_controller
+from blf_gym.envs.scenarios import sample_suite
+from blf_gym.kernel.simulate import simulate_batch
 
 __all__ = ["candidate_kwargs", "selection_scenarios", "evaluate_gains", "evaluate_filter", "main"]
 

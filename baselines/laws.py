@@ -1,7 +1,7 @@
 """The three control laws of the paper's Section 4.2 as plug-in functions over named signals.
 
-Each is the ``output`` function of a :class:`blf_gym.blocks.Controller`; its parameter names are the
-signals it reads (:mod:`blf_gym.blocks`) and the outputs it writes. Symbols map to the paper as:
+Each is the ``output`` function of a :class:`blf_gym.plugins.blocks.Controller`; its parameter names are the
+signals it reads (:mod:`blf_gym.plugins.blocks`) and the outputs it writes. Symbols map to the paper as:
 e1 = q - q_d (tracking error, z1), alpha1 (virtual velocity), e2 = v - alpha1 (z2), K1, K2 (Table 2),
 k_a/k_b (the error bounds), x3_hat (estimated lumped disturbance).
 
@@ -28,8 +28,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.blocks import coriolis_times
-from blf_gym.bounds import log_rate
+from blf_gym.plugins.blocks import coriolis_times
+from blf_gym.model.bounds import log_rate
 
 __all__ = ["bc_output", "lesobc_output", "proposed_output", "barrier_term"]
 

@@ -16,14 +16,14 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.blocks import model_length, nominal_acceleration, nominal_length, nominal_model_into
+from blf_gym.plugins.blocks import model_length, nominal_acceleration, nominal_length, nominal_model_into
 
 __all__ = ["leso_rhs", "leso_ode3", "LESO"]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def leso_rhs(y, u, x1_hat, x2_hat, x3_hat, k0, nominal, work, d_x1_hat, d_x2_hat, d_x3_hat):
-    """The observer's ``rhs`` over named signals (blf_gym.blocks); ``k0`` is its bandwidth, 1/s."""
+    """The observer's ``rhs`` over named signals (blf_gym.plugins.blocks); ``k0`` is its bandwidth, 1/s."""
     n = y.shape[0]
     c = work[:n]
     g = work[n : 2 * n]
@@ -48,7 +48,7 @@ class LESO:
     """
 
     def __init__(self, k0: float = 200.0, nominal: np.ndarray | None = None, n: int = 3) -> None:
-        from blf_gym.params import ArmParams
+        from blf_gym.model.params import ArmParams
 
         if not (np.isfinite(k0) and k0 > 0):
             raise ValueError(f"LESO.k0 must be a finite number > 0, got {k0!r}")

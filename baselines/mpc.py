@@ -2,7 +2,7 @@
 section 15).
 
 The controller's model is the nominal arm (paper Table 1) derived here symbolically from its
-Lagrangian, independently of :mod:`blf_gym.dynamics` (``tests/test_mpc.py`` checks the two against
+Lagrangian, independently of :mod:`blf_gym.model.dynamics` (``tests/test_mpc.py`` checks the two against
 each other): point masses m_j at the links' far ends, so the kinetic energy is
 1/2 sum_j m_j |d p_j/dt|^2 and the potential sum_j m_j g p_j,y, and
 
@@ -35,7 +35,7 @@ solution shifted by one interval (primal and dual), the dynamics and constraints
 once and one QP in the step is solved (HPIPM, through CasADi), whose full step is the new plan. The
 ``"ipopt"`` scheme instead solves each sample's problem to convergence with IPOPT from the same
 warm start. The problem's functions are compiled to C once and kept in blf-gym's cache folder
-(:func:`blf_gym.io.cache_dir`, ``nmpc/``), so later processes load them in a fraction of a second.
+(:func:`blf_gym.results.io.cache_dir`, ``nmpc/``), so later processes load them in a fraction of a second.
 
 A solve whose solver (the QP's, or IPOPT) does not report success is a **failure**: the policy
 then applies the next torque of its last successful plan while that plan lasts, and otherwise a
@@ -56,11 +56,12 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from blf_gym.observation import (
+from blf_gym.envs.observation import (
     PREVIEW_EXTRAS,
     PREVIEW_POINTS,
     PREVIEW_STEP,
@@ -69,9 +70,9 @@ from blf_gym.observation import (
     observation_index,
     unsquash,
 )
-from blf_gym import sources
-from blf_gym.io import cache_dir
-from blf_gym.params import ArmParams, FrictionParams
+from blf_gym.jit import sources
+from blf_gym.results.io import cache_dir
+from blf_gym.model.params import ArmParams, FrictionParams
 
 __all__ = ["NMPCParams", "casadi_dynamics", "NMPC", "NMPCPolicy", "nmpc"]
 
@@ -349,6 +350,68 @@ class NMPC:
         gaps z_k+1 - f(z_k, v_k) = 0, the initial stage z_0 = [x0, 0, u_last], and each node's two
         soft output constraints."""
         p, n, N = self.params, self.n, self.N
+        pr = self._problem(ca)
+        w, P, f, g, ng, nw, nx = pr.w, pr.P, pr.f, pr.g, pr.ng, pr.nw, 2 * n
+        lbw, ubw, lbg, ubg = pr.bounds
+        opts = {} if jit is None else {
+            "jit": True, "compiler": "shell", "jit_serialize": "embed", "jit_name": jit[1], "jit_temp_suffix": False,
+            "jit_cleanup": False,
+            "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
+        self._nlam = ng + nw
+        X0, U0, S0 = ca.MX.sym("X0", nx, N + 1), ca.MX.sym("U0", n, N), ca.MX.sym("S0", n, N)
+        L0 = ca.MX.sym("L0", self._nlam)
+        # the warm start's stages from its trajectory: sigma_k = s_k-1 (0 at the first node), u_prev,k = u_k-1
+        Z0 = ca.vertcat(X0, ca.horzcat(ca.DM.zeros(n), S0), ca.horzcat(pr.ulast, U0))
+        w0 = ca.vertcat(ca.vec(ca.vertcat(Z0[:, :N], U0, S0)), Z0[:, N])
+        if p.scheme == "rti":
+            # the real-time iteration: one full Gauss-Newton step from the shifted solution w0, the QP
+            # in the step dw with the constraints linearised at w0 (one Jacobian, one QP per sample)
+            if lin is None:
+                lin = ca.Function("nmpc_lin", [w, P], [g, ca.jacobian(g, w), ca.gradient(f, w)], opts)
+            if part:
+                return lin
+            ws, sol = self._rti_step(ca, pr, lin, w0, L0)
+        else:
+            # IPOPT from the shifted solution, multipliers included, with a small barrier parameter
+            solver = ca.nlpsol("nmpc_nlp", "ipopt", {"x": w, "p": P, "f": f, "g": g},
+                               {"print_time": False, **opts, "hess_lag": pr.hess_lag, "ipopt.print_level": 0,
+                                "ipopt.sb": "yes", "ipopt.max_iter": p.max_iter,
+                                "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
+                                "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
+            sol = solver(x0=w0, p=P, lbx=lbw, ubx=ubw, lbg=lbg, ubg=ubg, lam_g0=L0[:ng], lam_x0=L0[ng:])
+            ws = sol["x"]
+        stride = pr.stride
+        st = ca.reshape(ws[: N * stride], stride, N)
+        nz = pr.nz
+        res = [ca.horzcat(st[:nx, :], ws[N * stride:N * stride + nx]), st[nz:nz + n, :], st[nz + n:, :],
+               ca.vertcat(sol["lam_g"], sol["lam_x"])]
+        return ca.Function("nmpc", [*pr.pars, X0, U0, S0, L0], res,
+                           ["x0", "d", "qref", "qdref", "ka", "kb", "u_last", "X0", "U0", "S0", "L0"],
+                           ["X", "U", "S", "L"])
+
+    def _rti_step(self, ca: Any, pr: SimpleNamespace, lin: Any, w0: Any, L0: Any) -> tuple[Any, dict[str, Any]]:
+        """The real-time iteration's QP from the shifted solution ``w0``: (the new unknowns, their
+        multipliers ``lam_g`` and ``lam_x``)."""
+        p, n, N = self.params, self.n, self.N
+        nz, nv, nw, ng = pr.nz, pr.nv, pr.nw, pr.ng
+        lbw, ubw, lbg, ubg = pr.bounds
+        g0, J0, grad0 = lin(w0, pr.P)
+        # the step's metric is regularised (Levenberg-Marquardt): the slacks and the first node have
+        # no quadratic cost; a fixed point (zero step) is still a KKT point of the problem itself
+        h_qp = pr.hess + p.regularization * ca.DM.eye(nw)
+        qp_opts: dict[str, Any] = {"error_on_fail": False, **_QP_OPTIONS.get(p.qp_solver, {})}
+        if p.qp_solver == "hpipm":  # the stage structure, as laid out in _build
+            qp_opts.update(N=N, nx=[nz] * (N + 1), nu=[nv] * N + [0], ng=[nz] + [2 * n] * N)
+        qp = ca.conic("nmpc_qp", p.qp_solver, {"h": h_qp.sparsity(), "a": J0.sparsity()}, qp_opts)
+        sol = qp(h=h_qp, g=grad0, a=J0, lba=lbg - g0, uba=ubg - g0, lbx=lbw - w0, ubx=ubw - w0,
+                 lam_a0=L0[:ng], lam_x0=L0[ng:])
+        return w0 + sol["x"], {"lam_g": sol["lam_a"], "lam_x": sol["lam_x"]}
+
+    def _problem(self, ca: Any) -> SimpleNamespace:
+        """The stage-wise problem of :meth:`_build` in CasADi symbols: the unknowns ``w``, the
+        parameters (``pars``, stacked in ``P``), the cost ``f``, the constraints ``g`` and their
+        bounds, the Gauss-Newton Hessian and its Lagrangian function for IPOPT."""
+        p, n, N = self.params, self.n, self.N
         nx = 2 * n
         nz, nv, nw = self._layout()
         stride = nz + nv
@@ -382,55 +445,13 @@ class NMPC:
         lam_f, lam_g = ca.MX.sym("lam_f"), ca.MX.sym("lam_g", ng)
         hess_lag = ca.Function("hess_lag", [w, P, lam_f, lam_g], [lam_f * ca.triu(hess)],
                                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
-        opts = {} if jit is None else {
-            "jit": True, "compiler": "shell", "jit_serialize": "embed", "jit_name": jit[1], "jit_temp_suffix": False,
-            "jit_cleanup": False,
-            "jit_options": {"flags": ["-O3"], "verbose": False, "directory": os.path.join(jit[0], "")}}
         inf = np.inf
         lo_v, hi_v = np.r_[np.full(n, -self.u_max), np.zeros(n)], np.r_[np.full(n, self.u_max), np.full(n, inf)]
         lbw = np.r_[np.tile(np.r_[np.full(nz, -inf), lo_v], N), np.full(nz, -inf)]
         ubw = np.r_[np.tile(np.r_[np.full(nz, inf), hi_v], N), np.full(nz, inf)]
-        lbg = np.where(eq == 1, 0.0, -inf)
-        ubg = np.zeros(ng)
-        self._nlam = ng + nw
-        X0, U0, S0 = ca.MX.sym("X0", nx, N + 1), ca.MX.sym("U0", n, N), ca.MX.sym("S0", n, N)
-        L0 = ca.MX.sym("L0", self._nlam)
-        # the warm start's stages from its trajectory: sigma_k = s_k-1 (0 at the first node), u_prev,k = u_k-1
-        Z0 = ca.vertcat(X0, ca.horzcat(ca.DM.zeros(n), S0), ca.horzcat(ulast, U0))
-        w0 = ca.vertcat(ca.vec(ca.vertcat(Z0[:, :N], U0, S0)), Z0[:, N])
-        if p.scheme == "rti":
-            # the real-time iteration: one full Gauss-Newton step from the shifted solution w0, the QP
-            # in the step dw with the constraints linearised at w0 (one Jacobian, one QP per sample)
-            if lin is None:
-                lin = ca.Function("nmpc_lin", [w, P], [g, ca.jacobian(g, w), ca.gradient(f, w)], opts)
-            if part:
-                return lin
-            g0, J0, grad0 = lin(w0, P)
-            # the step's metric is regularised (Levenberg-Marquardt): the slacks and the first node have
-            # no quadratic cost; a fixed point (zero step) is still a KKT point of the problem itself
-            h_qp = hess + p.regularization * ca.DM.eye(nw)
-            qp_opts: dict[str, Any] = {"error_on_fail": False, **_QP_OPTIONS.get(p.qp_solver, {})}
-            if p.qp_solver == "hpipm":  # the stage structure, as laid out above
-                qp_opts.update(N=N, nx=[nz] * (N + 1), nu=[nv] * N + [0], ng=[nz] + [2 * n] * N)
-            qp = ca.conic("nmpc_qp", p.qp_solver, {"h": h_qp.sparsity(), "a": J0.sparsity()}, qp_opts)
-            sol = qp(h=h_qp, g=grad0, a=J0, lba=lbg - g0, uba=ubg - g0, lbx=lbw - w0, ubx=ubw - w0,
-                     lam_a0=L0[:ng], lam_x0=L0[ng:])
-            ws, sol = w0 + sol["x"], {"lam_g": sol["lam_a"], "lam_x": sol["lam_x"]}
-        else:
-            # IPOPT from the shifted solution, multipliers included, with a small barrier parameter
-            solver = ca.nlpsol("nmpc_nlp", "ipopt", {"x": w, "p": P, "f": f, "g": g},
-                               {"print_time": False, **opts, "hess_lag": hess_lag, "ipopt.print_level": 0,
-                                "ipopt.sb": "yes", "ipopt.max_iter": p.max_iter,
-                                "ipopt.warm_start_init_point": "yes", "ipopt.mu_init": 1e-4,
-                                "ipopt.warm_start_bound_push": 1e-6, "ipopt.warm_start_mult_bound_push": 1e-6})
-            sol = solver(x0=w0, p=P, lbx=lbw, ubx=ubw, lbg=lbg, ubg=ubg, lam_g0=L0[:ng], lam_x0=L0[ng:])
-            ws = sol["x"]
-        st = ca.reshape(ws[: N * stride], stride, N)
-        res = [ca.horzcat(st[:nx, :], ws[N * stride:N * stride + nx]), st[nz:nz + n, :], st[nz + n:, :],
-               ca.vertcat(sol["lam_g"], sol["lam_x"])]
-        return ca.Function("nmpc", [*pars, X0, U0, S0, L0], res,
-                           ["x0", "d", "qref", "qdref", "ka", "kb", "u_last", "X0", "U0", "S0", "L0"],
-                           ["X", "U", "S", "L"])
+        bounds = (lbw, ubw, np.where(eq == 1, 0.0, -inf), np.zeros(ng))
+        return SimpleNamespace(w=w, P=P, pars=pars, ulast=ulast, f=f, g=g, ng=ng, nw=nw, nz=nz, nv=nv,
+                               stride=stride, hess=hess, hess_lag=hess_lag, bounds=bounds)
 
     def _shift_multipliers(self, lam: np.ndarray) -> np.ndarray:
         """The multipliers ``[lam_g, lam_x]`` of a solution moved one interval on, as its primal
@@ -607,7 +628,7 @@ class NMPCPolicy:
     deterministic)`` gives actions in [-1, 1] (torque over max_torque), as a trained agent's.
 
     It reads the measured angle y, the torque applied over the last sample, and the preview of the
-    reference and the bounds (the observation extras :data:`blf_gym.observation.PREVIEW_EXTRAS`), so
+    reference and the bounds (the observation extras :data:`blf_gym.envs.observation.PREVIEW_EXTRAS`), so
     it acts in ``gym.make("PlanarBLF-v0", **policy.env_kwargs)``. Each row of a batch is an arm with
     its own warm start; an observation at t = 0 (or ``episode_start``) starts that arm afresh.
 
@@ -660,7 +681,7 @@ class NMPCPolicy:
         missing = [g for g in PREVIEW_EXTRAS if g not in core.observation_extras]
         if missing:
             raise ValueError(f"NMPCPolicy reads the preview {missing} of the observation; make the env with "
-                             "observation_extras including blf_gym.observation.PREVIEW_EXTRAS (policy.env_kwargs)")
+                             "observation_extras including blf_gym.envs.observation.PREVIEW_EXTRAS (policy.env_kwargs)")
         self._index = observation_index(core.n, core.privileged, core.observation_extras)
 
     def _inputs(self, o: np.ndarray) -> tuple:

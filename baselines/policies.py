@@ -14,7 +14,7 @@ residual mode, or whose torque limit differs (on the default 10 ms env the held 
 bounds within a few steps). Without ``env=`` it cannot check, and warns once at the first
 ``predict``.
 
-The inner path (``controller=`` in the env, or ``blf_gym.simulate``) evaluates the same compiled
+The inner path (``controller=`` in the env, or ``blf_gym.kernel.simulate``) evaluates the same compiled
 law at every ODE3 stage instead; the two agree closely but not exactly (docs/model.md section 6), and the
 evaluation command uses the inner path. BC reads the true velocity, so it needs
 ``privileged=True``.
@@ -26,12 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from blf_gym.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
-from blf_gym.bounds import BOUND_LEN, KA, KA_DDOT, KA_DOT, KB, KB_DDOT, KB_DOT
-from blf_gym.observation import (SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout,
+from blf_gym.plugins.blocks import connect, model_length, nominal_length, nominal_model_into, work_length
+from blf_gym.model.bounds import BOUND_LEN, KA, KA_DDOT, KA_DOT, KB, KB_DDOT, KB_DOT
+from blf_gym.envs.observation import (SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index, observation_layout,
                                   unsquash)
-from blf_gym.reference import REFERENCE_SIGNALS
-from blf_gym.params import BoundParams
+from blf_gym.model.reference import REFERENCE_SIGNALS
+from blf_gym.model.params import BoundParams
 
 from .controllers import ControllerGains, ObserverGains
 from .leso import leso_ode3
@@ -64,7 +64,7 @@ class BaselinePolicy:
     ) -> None:
         from dataclasses import fields as _fields
 
-        from blf_gym.registry import available_controllers, make_controller, make_observer
+        from blf_gym.plugins.registry import available_controllers, make_controller, make_observer
 
         names = [c for c in available_controllers() if c != "none"]
         if controller not in names:
@@ -162,7 +162,7 @@ class BaselinePolicy:
                 qd = np.zeros(_N)
             nominal_model_into(y, self._nominal, self._nom, self._work)
             c = self._conn
-            # the law's output alone, through the generated glue's named signals (blf_gym.blocks;
+            # the law's output alone, through the generated glue's named signals (blf_gym.plugins.blocks;
             # unused ones get an empty array): no observer or controller state, no filter, no derivatives
             c.ctrl_output(t=0.0, y=y, q=y, qd=qd, xo=self._xhat[i], xc=self._none, ref=ref, bnd=bnd, nom=self._nom,
                           og=self._k0, cg=self.inner.gains, fg=self._none, u=self._none, cout=self._cout,

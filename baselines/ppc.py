@@ -31,8 +31,8 @@ from typing import Any
 
 from numba import njit
 
-from blf_gym.blocks import Controller, coriolis_times
-from blf_gym.bounds import log_rate
+from blf_gym.plugins.blocks import Controller, coriolis_times
+from blf_gym.model.bounds import log_rate
 
 from .controllers import controller_gains
 

@@ -21,10 +21,10 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
-from blf_gym.io import check_out_dir, os_error_message
-from blf_gym.metrics import provenance, summarize, write_results
-from blf_gym.params import PRESETS, preset
-from blf_gym.simulate import divergence_message
+from blf_gym.results.io import check_out_dir, os_error_message
+from blf_gym.results.metrics import provenance, summarize, write_results
+from blf_gym.model.params import PRESETS, preset
+from blf_gym.kernel.simulate import divergence_message
 
 __all__ = ["PAPER_RMSE_DEG", "main", "run_cases"]
 
@@ -45,7 +45,7 @@ PAPER_CONTROLLERS = tuple(dict.fromkeys(c for _, c in PAPER_RMSE_DEG))
 
 
 def _registered() -> list[str]:
-    from blf_gym.registry import available_controllers
+    from blf_gym.plugins.registry import available_controllers
 
     return [c for c in available_controllers() if c != "none"]
 
@@ -99,7 +99,7 @@ def run_cases(
     Each controller runs all its presets in one kernel call, split over threads. ``on_done(pairs)`` is
     called after each controller with everything finished so far (used to save partial results).
     """
-    from blf_gym.simulate import simulate_batch
+    from blf_gym.kernel.simulate import simulate_batch
 
     _check_names(presets, controllers)
     overrides: dict[str, float] = {}
@@ -177,7 +177,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args.command = shlex.join(["blf-reproduce", *argv])
     try:
         _check_names(args.preset, args.controller)
-        from blf_gym.registry import available_observers
+        from blf_gym.plugins.registry import available_observers
 
         if args.observer not in available_observers():
             raise ValueError(f"unknown observer {args.observer!r}; accepted values: {available_observers()}")

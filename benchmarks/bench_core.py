@@ -24,8 +24,8 @@ from pathlib import Path
 
 
 def _closed_loop_step_us(controller: str, repeats: int) -> tuple[float, list[float]]:
-    from blf_gym.params import preset
-    from blf_gym.simulate import ClosedLoop
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import ClosedLoop
 
     sc = preset("paper-0.1hz")
     loop = ClosedLoop([sc], controller, threads=1)
@@ -63,10 +63,10 @@ def main() -> None:
     start = results_json.context()
 
     t0 = time.perf_counter()
-    import blf_gym.simulate  # noqa: F401
+    import blf_gym.kernel.simulate  # noqa: F401
 
     import_s = time.perf_counter() - t0
-    print(f"import blf_gym.simulate: {import_s:.2f} s")
+    print(f"import blf_gym.kernel.simulate: {import_s:.2f} s")
     step_us, step_us_runs = {}, {}
     print("\nclosed-loop step, 30 s run in one compiled call (median of "
           f"{args.repeats}):")

@@ -8,7 +8,7 @@ this process only:
 * ``inference``: the policy's forward pass while collecting rollouts (``ActorCriticPolicy.forward``;
   off-policy algorithms' ``predict``);
 * ``update``: the algorithm's ``train()`` (the gradient steps);
-* ``curves``: the learning-curve evaluations (``blf_gym.metrics.summarize`` of their episodes);
+* ``curves``: the learning-curve evaluations (``blf_gym.results.metrics.summarize`` of their episodes);
 * ``bookkeeping``: on-policy rollouts (``collect_rollouts``) less the env, normalization and
   inference: the rollout buffer, tensor conversions, callbacks (checkpoints) and GAE;
 * ``rest``: the wall time less all of the above (logging, set-up, saving).
@@ -74,7 +74,7 @@ def main() -> None:
 
     import torch
 
-    import blf_gym.metrics
+    import blf_gym.results.metrics
     from agents.loading import algorithm_class
     from agents.train import train
     from agents.vec_env import BLFVecEnv
@@ -88,7 +88,7 @@ def main() -> None:
     if issubclass(cls, OffPolicyAlgorithm):
         _timed(BasePolicy, "predict", "inference")
     assert issubclass(cls, (OnPolicyAlgorithm, OffPolicyAlgorithm))
-    _timed(blf_gym.metrics, "summarize", "curves")  # it consumes agent_episodes' generator
+    _timed(blf_gym.results.metrics, "summarize", "curves")  # it consumes agent_episodes' generator
     if issubclass(cls, OnPolicyAlgorithm):
         _timed(OnPolicyAlgorithm, "collect_rollouts", "rollouts")
 

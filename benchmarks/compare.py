@@ -45,9 +45,18 @@ _PROBE = r"""
 import json, statistics, time, sys
 import numpy as np
 import gymnasium as gym
+import os
 import blf_gym
-from blf_gym.params import preset
-from blf_gym.simulate import ClosedLoop
+# import by the tree's own layout: the flat modules before blf_gym's sub-packages, the sub-packages
+# after (asked of the files: an editable install would answer a new path in an old tree)
+if os.path.isdir(os.path.join(os.path.dirname(blf_gym.__file__), "model")):
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import ClosedLoop
+    from blf_gym.envs.scenarios import sample_suite
+else:
+    from blf_gym.params import preset
+    from blf_gym.simulate import ClosedLoop
+    from blf_gym.scenarios import sample_suite
 
 def mean_step_us(env, steps):  # the mean of `steps` env steps, resets (and a lazy law reference) included
     a = np.zeros(env.action_space.shape, dtype=np.float32)
@@ -98,7 +107,6 @@ for _ in range(300):
     venv.step(A)
     vs.append(time.perf_counter() - t0)
 
-from blf_gym.scenarios import sample_suite
 mixed = [sample_suite(np.random.default_rng(s)) for s in range(64)]
 try:
     batch = ClosedLoop(mixed, "proposed", threads=1, lanes=4)

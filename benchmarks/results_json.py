@@ -1,7 +1,7 @@
 """The benchmarks' ``--json FILE``: their figures saved for ``python docs/tables.py``.
 
 Each file says when, where and from which commit its figures were measured (:func:`context`) and is
-written through ``blf_gym.io``'s atomic writer, so an interrupted run leaves the old file or none.
+written through ``blf_gym.results.io``'s atomic writer, so an interrupted run leaves the old file or none.
 Two kinds:
 
 * :func:`write`: one measurement that is complete in itself (``compare.py``'s interleaved rounds,
@@ -51,7 +51,7 @@ def context() -> dict[str, Any]:
 
 
 def _save(path: Path, doc: dict[str, Any]) -> None:
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     atomic_write_json(path, doc)
     print(f"wrote {path}")

@@ -5,18 +5,20 @@ Importing the package registers ``PlanarBLF-v0`` (plain: the action is the torqu
 ``PlanarBLFResidual-v0`` (residual over the LESO + barrier-Lyapunov law), both with a native
 vector entry point for ``gym.make_vec``.
 
-Modules: :mod:`~blf_gym.params` (parameters and presets), :mod:`~blf_gym.dynamics`,
-:mod:`~blf_gym.uncertainty`, :mod:`~blf_gym.reference`, :mod:`~blf_gym.bounds`,
-:mod:`~blf_gym.registry` (controllers and observers by name), :mod:`~blf_gym.simulate` (the compiled closed
-loop), :mod:`~blf_gym.metrics`, :mod:`~blf_gym.scenarios`, :mod:`~blf_gym.env`,
-:mod:`~blf_gym.vector`, :mod:`~blf_gym.sources` (the import closures that key every compiled cache), :mod:`~blf_gym.safety` (:class:`SafetyGymnasiumWrapper`, Safety-Gymnasium's
-six-value ``step`` with the cost).
+Sub-packages, by role (docs/layout.md; imports point down this list, never up):
+
+- :mod:`blf_gym.envs`: the envs, the observation, the scenarios and suites, the levels;
+- :mod:`blf_gym.kernel`: the compiled closed loop (:class:`~blf_gym.kernel.simulate.ClosedLoop`), the reward;
+- :mod:`blf_gym.plugins`: the block protocol and the registry of controllers, observers and policies;
+- :mod:`blf_gym.model`: parameters and presets, dynamics, uncertainties, reference, bounds;
+- :mod:`blf_gym.jit` and :mod:`blf_gym.results`: the compiled caches' keys and maths; the results
+  schema and atomic output.
 """
 
 from gymnasium.envs.registration import register, registry
 
-from .params import PRESETS, Scenario, preset
-from .safety import SafetyGymnasiumWrapper
+from blf_gym.model.params import PRESETS, Scenario, preset
+from blf_gym.envs.safety import SafetyGymnasiumWrapper
 
 __version__ = "0.1.0"
 __all__ = ["ENV_IDS", "PRESETS", "SafetyGymnasiumWrapper", "Scenario", "preset", "__version__"]
@@ -28,13 +30,13 @@ a torque added to the law's."""
 if ENV_IDS["plain"] not in registry:
     register(
         id=ENV_IDS["plain"],
-        entry_point="blf_gym.env:make_env",
-        vector_entry_point="blf_gym.vector:PlanarBLFVectorEnv",
+        entry_point="blf_gym.envs.env:make_env",
+        vector_entry_point="blf_gym.envs.vector:PlanarBLFVectorEnv",
     )
 if ENV_IDS["residual"] not in registry:
     register(
         id=ENV_IDS["residual"],
-        entry_point="blf_gym.env:make_residual_env",
-        vector_entry_point="blf_gym.vector:make_residual_vector_env",
+        entry_point="blf_gym.envs.env:make_residual_env",
+        vector_entry_point="blf_gym.envs.vector:make_residual_vector_env",
         kwargs={"controller": "proposed"},
     )

@@ -1,7 +1,7 @@
 """A Griffe extension for the API reference: reStructuredText roles in docstrings become code links.
 
-The docstrings in the code use Sphinx's roles, e.g. :func:`blf_gym.io.cache_dir` or
-:class:`~blf_gym.env.PlanarBLFEnv`. Markdown would show them raw (":func:" and then the name as code).
+The docstrings in the code use Sphinx's roles, e.g. :func:`blf_gym.results.io.cache_dir` or
+:class:`~blf_gym.envs.env.PlanarBLFEnv`. Markdown would show them raw (":func:" and then the name as code).
 This extension rewrites them, once the package is loaded, into mkdocs-autorefs cross-references marked
 ``optional``: the name is shown as code and links to its entry when the API reference documents it;
 otherwise autorefs leaves it as plain code, with no warning in the strict build.

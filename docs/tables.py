@@ -36,9 +36,9 @@ def _module(path: Path):
 
 
 def _env(name: str, *args: object) -> Callable[[], str]:
-    """The table that ``blf_gym.env.<name>(*args)`` makes (imported when asked for)."""
+    """The table that ``blf_gym.envs.env.<name>(*args)`` makes (imported when asked for)."""
     def make() -> str:
-        from blf_gym import env
+        from blf_gym.envs import env
 
         return getattr(env, name)(*args)
 
@@ -324,7 +324,7 @@ def verdict_table(prefix: str = "") -> str:
     those; the cell says which), the reference controller (the second yardstick, on the training
     suite) and, for a residual over another law, that base law (on the training suite); and the
     failure rates."""
-    from agents.evaluate import REFERENCE
+    from blf_gym.envs.protocol import REFERENCE
 
     out = ["| learner | seeds | agent steps per run | wall clock per run | IQM vs the law, training suite [95 % CI] | "
            "IQM vs the law, stress [95 % CI] (episodes per seed) | "
@@ -354,7 +354,7 @@ def verdict_table(prefix: str = "") -> str:
                    f"{_ci(st['randomized'], 'iqm', 3)} | {_ci(st['stress'], 'iqm', 3)} ({st['stress']['episodes']}) | "
                    f"{_ci(ref, 'iqm', 3)} | {own} | "
                    f"{st['randomized']['failure_rate']:.2f} / {st['stress']['failure_rate']:.2f} |")
-    from blf_gym.scenarios import STRESS_SEED_OFFSET as s0
+    from blf_gym.envs.scenarios import STRESS_SEED_OFFSET as s0
 
     suite, *more = sorted(stress_episodes)
     out += ["", f"Stress episodes per seed: the suite's {suite} (seeds {s0}-{s0 + suite - 1})"
@@ -412,7 +412,7 @@ def best_table() -> str:
     controller and against the residual's own base, P(improvement over the base), failure rates
     (residual / base) and the RMS torque as a share of the base's."""
     parts = _best_parts()
-    from agents.evaluate import REFERENCE
+    from blf_gym.envs.protocol import REFERENCE
 
     out = [f"| residual | group | seeds x episodes | IQM vs its base [95 % CI] | P(improvement over the base) [95 % CI] | "
            f"IQM vs the paper-gain law | IQM vs {REFERENCE.upper()} | failure rate, residual / base | RMS torque / base's |",
@@ -468,9 +468,9 @@ def best_verdict(indent: str = "") -> str:
 
 
 def levels_table() -> str:
-    """The difficulty levels (blf_gym.levels.LEVELS): what each keeps of a drawn scenario and what it
+    """The difficulty levels (blf_gym.envs.levels.LEVELS): what each keeps of a drawn scenario and what it
     changes."""
-    from blf_gym.levels import DEFAULT_LEVEL, LEVELS
+    from blf_gym.envs.levels import DEFAULT_LEVEL, LEVELS
 
     out = ["| level | name | plant | bounds | external force | episode names |", "|---|---|---|---|---|---|"]
     for lv in LEVELS:
@@ -511,7 +511,7 @@ def ladder_table() -> str:
     the paper-gain law on the same level's episodes) with its 95 % interval on the training suite's
     and the stress suite's held-out episodes, and the failure rates, from
     ``docs/ladder/L<level>/report.json`` (docs/ladder/eval.sh)."""
-    from blf_gym.levels import LEVELS, level_name
+    from blf_gym.envs.levels import LEVELS, level_name
 
     out = ["| level | policy | seeds | IQM score, training suite [95 % CI] | IQM score, stress [95 % CI] | "
            "failure rate: presets / training / stress |", "|---|---|---|---|---|---|"]
@@ -544,7 +544,7 @@ def ladder_verdict(indent: str = "") -> str:
     """The README's verdict on learning without a law, from the ladder (docs/ladder/L<level>/
     report.json): per level, plain PPO's IQM score on the training suite with its interval and its
     failure rate, beside the floor's, in one sentence."""
-    from blf_gym.levels import LEVELS
+    from blf_gym.envs.levels import LEVELS
 
     parts, seeds = [], set()
     for lv in LEVELS:
@@ -580,7 +580,7 @@ def floor_table() -> str:
     ``docs/floor/L<level>/results.json`` (docs/floor/run.sh): scores against the paper-gain law on
     each level's presets, training suite and stress suite, the worst joint's RMSE on the 0.1 Hz
     preset, and the failure rates."""
-    from blf_gym.levels import LEVELS, level_name
+    from blf_gym.envs.levels import LEVELS, level_name
 
     out = ["| level | policy | score 0.1 Hz / 0.5 Hz | score, training suite | score, stress | worst-joint RMSE, "
            "0.1 Hz (deg) | first violation, 0.1 Hz (s) | failures: presets / training / stress |",
@@ -1013,7 +1013,7 @@ SIGNAL_ROWS = (
     (("nominal",), "the nominal model at `y`, for the operators below"),
     (("work",), "scratch, undefined on entry"),
 )
-"""The signals every plug-in may read (``blf_gym.blocks.BASE_SIGNALS``), grouped into rows, with
+"""The signals every plug-in may read (``blf_gym.plugins.blocks.BASE_SIGNALS``), grouped into rows, with
 what each row is; sizes and units come from the declaration."""
 
 BLOCK_SIGNAL_ROWS = (
@@ -1029,15 +1029,15 @@ BLOCK_SIGNAL_ROWS = (
 
 def signals_table() -> str:
     """The signals a plug-in function may read: the base signals from
-    ``blf_gym.blocks.BASE_SIGNALS`` (size and unit), grouped by :data:`SIGNAL_ROWS`, then
+    ``blf_gym.plugins.blocks.BASE_SIGNALS`` (size and unit), grouped by :data:`SIGNAL_ROWS`, then
     :data:`BLOCK_SIGNAL_ROWS`."""
-    from blf_gym.blocks import BASE_SIGNALS, work_length
+    from blf_gym.plugins.blocks import BASE_SIGNALS, work_length
 
     listed = [k for names, _ in SIGNAL_ROWS for k in names]
     if sorted(listed) != sorted(BASE_SIGNALS):
         raise ValueError(f"SIGNAL_ROWS lists {sorted(listed)}; BASE_SIGNALS declares {sorted(BASE_SIGNALS)}")
     if any(work_length.py_func(n) != 2 * n * n + 12 * n for n in (1, 2, 3, 7)):
-        raise ValueError("blf_gym.blocks.work_length is no longer 2n^2 + 12n: update signals_table")
+        raise ValueError("blf_gym.plugins.blocks.work_length is no longer 2n^2 + 12n: update signals_table")
     size_text = {"model": "-", "work": "2n^2 + 12n"}
     out = ["| signal | size | unit | what |", "|---|---|---|---|"]
     for names, what in SIGNAL_ROWS:

@@ -70,7 +70,7 @@ def test_the_law_reference_of_a_scaled_plain_agent_is_the_law_alone():
     from dataclasses import replace
 
     from agents.evaluate import law_reference
-    from blf_gym.params import preset
+    from blf_gym.model.params import preset
 
     sc = [replace(preset("paper-0.1hz"), sim=replace(preset("paper-0.1hz").sim, duration=0.5))]
     meta = {"mode": "plain", "env_kwargs": {"controller": None, "control_period": 0.01}}

@@ -162,7 +162,7 @@ def test_a_config_s_env_keys_are_the_env_s_own_arguments():
 
     from agents.config import RUN_SET_ENV_KEYS, TrainConfig, env_keys
     from agents.config import CONFIG_DIR
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     params = set(inspect.signature(EnvCore.__init__).parameters) - {"self"}
     assert set(env_keys()) == params - set(RUN_SET_ENV_KEYS) and set(RUN_SET_ENV_KEYS) <= params
@@ -230,7 +230,7 @@ def test_vecenv_infos_read_on_demand_equal_the_whole_rows():
     comprehension of our own, at the step, as the adapter used to."""
     from gymnasium.vector import AutoresetMode
 
-    from blf_gym.vector import PlanarBLFVectorEnv
+    from blf_gym.envs.vector import PlanarBLFVectorEnv
 
     def plain(v, i):
         if isinstance(v, dict):
@@ -389,7 +389,7 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
     """eval/curve.json scores the live policy with its live normalization; its last point must equal
     blf-eval's metrics of the saved model.zip + vecnormalize.pkl on the same scenarios."""
     from agents.evaluate import build_scenarios, evaluate_agent
-    from blf_gym.metrics import summarize
+    from blf_gym.results.metrics import summarize
 
     out = tmp_path / "run"
     cfg = tmp_path / "ppo.yaml"
@@ -445,7 +445,7 @@ def test_learning_curve_points_match_an_evaluation_of_the_saved_model(tmp_path):
 
 def test_report_pools_seeds_and_counts_wins_against_the_law(tmp_path, capsys):
     from agents.report import main as report_main, pool_seeds
-    from blf_gym.metrics import write_results
+    from blf_gym.results.metrics import write_results
 
     def rec(policy, kind, rmse, viol=(0, 0, 0), fail=0.0):
         return {"policy": policy, "kind": kind, "scenario": "paper-0.1hz", "episodes": 1, "dt": 1e-4,
@@ -480,7 +480,7 @@ def test_report_statistics_are_rliable_s_iqm_and_probability_of_improvement(tmp_
     from scipy.stats import trim_mean
 
     from agents.report import main as report_main, seed_statistics
-    from blf_gym.metrics import write_results
+    from blf_gym.results.metrics import write_results
 
     rng = np.random.default_rng(0)
     scores = rng.uniform(0.6, 1.6, size=(5, 8))  # 5 seeds x 8 episodes
@@ -613,7 +613,7 @@ def test_sbx_algorithms_train_resume_and_are_judged_by_name(tmp_path):
 
     from agents.evaluate import agent_episodes
     from agents.loading import load_agent
-    from blf_gym.params import preset
+    from blf_gym.model.params import preset
 
     runs = {}
     for algo, mode, hyper in (("sbx_ppo", "residual", "ppo"), ("sbx_sac", "plain", "sac"),

@@ -25,13 +25,13 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import blf_gym  # noqa: F401  (registers the ids)
-from blf_gym.registry import available_controllers
-from blf_gym.envcore import RewardWeights
-from blf_gym.env import PlanarBLFEnv
-from blf_gym.params import DT_MIN, SimParams, usable_cores
-from blf_gym.scenarios import SAFE_RANGES, VARIATIONS
-from blf_gym.simulate import CHANNELS
-from blf_gym.vector import PlanarBLFVectorEnv
+from blf_gym.plugins.registry import available_controllers
+from blf_gym.envs.envcore import RewardWeights
+from blf_gym.envs.env import PlanarBLFEnv
+from blf_gym.model.params import DT_MIN, SimParams, usable_cores
+from blf_gym.envs.scenarios import SAFE_RANGES, VARIATIONS
+from blf_gym.kernel.simulate import CHANNELS
+from blf_gym.envs.vector import PlanarBLFVectorEnv
 
 FAST = settings(max_examples=50, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 ZERO = np.zeros(3, dtype=np.float32)
@@ -332,7 +332,7 @@ BAD_KWARGS = {
 def test_every_constructor_argument_has_a_bad_value_strategy():
     import inspect
 
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     kwargs = {p for p in inspect.signature(EnvCore.__init__).parameters if p not in ("self", "single")}
     assert kwargs - {"num_envs"} | {"render_mode"} == set(BAD_KWARGS)
@@ -444,7 +444,7 @@ def good_kwargs(draw):
 
 def _given(v):
     """The number a real argument stands for: a float32 (or float16) is the decimal it prints as
-    (blf_gym.params.check_real), so np.float32(0.01) is 0.01; anything else its float."""
+    (blf_gym.model.params.check_real), so np.float32(0.01) is 0.01; anything else its float."""
     if isinstance(v, np.floating) and v.dtype.itemsize < 8:
         return float(str(v))
     return float(v)

@@ -1,6 +1,6 @@
-"""The block declarations and the nominal-model operators of blf_gym.blocks.
+"""The block declarations and the nominal-model operators of blf_gym.plugins.blocks.
 
-The operators are checked against blf_gym.dynamics' NumPy functions, which tests/test_dynamics.py
+The operators are checked against blf_gym.model.dynamics' NumPy functions, which tests/test_dynamics.py
 checks against Pinocchio; the published law outputs against the paper's definitions recomputed
 from the loop's own state.
 """
@@ -14,14 +14,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blf_gym.blocks import (PLANT, coriolis_times, gravity, mass_solve, mass_times, model_length, nominal_length,
+from blf_gym.plugins.blocks import (PLANT, coriolis_times, gravity, mass_solve, mass_times, model_length, nominal_length,
                             nominal_model_into, size_of, units, work_length)
-from blf_gym.bounds import BOUND_SIGNALS, KA, KB
-from blf_gym.registry import available_controllers, available_observers, make_controller, make_observer
-from blf_gym.dynamics import coriolis_matrix, gravity as gravity_np, mass_matrix
-from blf_gym.params import ArmParams, preset
-from blf_gym.reference import joint_reference
-from blf_gym.simulate import ClosedLoop
+from blf_gym.model.bounds import BOUND_SIGNALS, KA, KB
+from blf_gym.plugins.registry import available_controllers, available_observers, make_controller, make_observer
+from blf_gym.model.dynamics import coriolis_matrix, gravity as gravity_np, mass_matrix
+from blf_gym.model.params import ArmParams, preset
+from blf_gym.model.reference import joint_reference
+from blf_gym.kernel.simulate import ClosedLoop
 
 
 def test_every_block_declares_states_and_unit_carrying_parameters():
@@ -94,7 +94,7 @@ def test_the_proposed_law_publishes_its_signals():
     np.testing.assert_allclose(out["z1"][0], z1, rtol=0, atol=1e-15)
     # z2_hat = x2_hat - alpha1, alpha1 = qd_d - (K1 + lambda1) z1 (paper eq. 18)
     bnd = np.zeros(len(BOUND_SIGNALS))
-    from blf_gym.bounds import bounds_into
+    from blf_gym.model.bounds import bounds_into
 
     bounds_into(t, sc.bounds.pack(), bnd)
     lam = np.hypot(bnd[1] / bnd[KA], bnd[4] / bnd[KB])

@@ -1,7 +1,7 @@
 """Every compiled artefact's cache key covers every source compiled into it (docs/getting-started.md,
 "What is cached where").
 
-The keys come from :mod:`blf_gym.sources`, which follows a module's imports on disk. The tests edit
+The keys come from :mod:`blf_gym.jit.sources`, which follows a module's imports on disk. The tests edit
 files of a throw-away copy of the packages (found through each module's ``__file__``, so a later
 move of the files keeps them valid) and ask for the keys of that copy; the end-to-end test compiles
 the copy in a fresh process with its own cache folders and checks that an edit to ``vmath.exp``
@@ -22,15 +22,18 @@ import pytest
 
 import blf_gym
 import baselines
-from blf_gym import blocks, sources
+from blf_gym.jit import sources
+from blf_gym.plugins import blocks
 
 # The modules whose code or constants the closed-loop kernel compiles: the templates (simulate), the
 # blocks they inline, and the declarations of every packed layout and status column. Written out
 # here as the reference the key is checked against, not read from the key's own code.
-KERNEL_MODULES = ("vmath", "params", "bounds", "dynamics", "reference", "reward", "status", "uncertainty",
-                  "views", "blocks", "simulate", "registry", "io", "sources")
+KERNEL_MODULES = ("jit.vmath", "model.params", "model.bounds", "model.dynamics", "model.reference", "kernel.reward",
+                  "kernel.status", "model.uncertainty", "jit.views", "plugins.blocks", "kernel.simulate",
+                  "plugins.registry", "results.io", "jit.sources")
 # Modules the kernel does not compile: an edit to them must not rebuild it.
-NOT_KERNEL = ("env", "envcore", "vector", "scenarios", "metrics", "render", "observation", "safety", "__init__")
+NOT_KERNEL = ("envs.env", "envs.envcore", "envs.vector", "envs.scenarios", "results.metrics", "envs.render",
+              "envs.observation", "envs.safety", "envs.levels", "envs.lookahead", "__init__")
 
 
 @pytest.fixture(scope="module")
@@ -71,14 +74,14 @@ def _edited(tree: Path, module, text: str = "\n# an edit\n"):
 
 
 def _kernel_key(tree: Path) -> str:
-    return sources.digest("blf_gym.simulate", path=(str(tree),))
+    return sources.digest("blf_gym.kernel.simulate", path=(str(tree),))
 
 
 def test_the_copy_gives_the_same_keys_as_the_package(tree):
     # the closure is found from the files, so the same files give the same key wherever they lie
     sources.clear()
-    assert _kernel_key(tree) == sources.digest("blf_gym.simulate")
-    names = {m for m, _ in sources.closure("blf_gym.simulate", path=(str(tree),))}
+    assert _kernel_key(tree) == sources.digest("blf_gym.kernel.simulate")
+    names = {m for m, _ in sources.closure("blf_gym.kernel.simulate", path=(str(tree),))}
     assert {f"blf_gym.{m}" for m in KERNEL_MODULES} <= names
     assert not names & {f"blf_gym.{m}" for m in NOT_KERNEL}, "the kernel's key reads a module it does not compile"
 
@@ -103,7 +106,7 @@ def test_an_edit_to_a_file_the_kernel_does_not_compile_keeps_the_key(tree, name)
 def test_the_glue_key_covers_what_a_plug_in_calls_in_another_file(tree):
     # the CBF filter's apply calls innovation_exceeds from baselines/filters.py
     from baselines import cbf, filters
-    from blf_gym import vmath
+    from blf_gym.jit import vmath
 
     fn = cbf.cbf_apply
     assert fn.py_func.__globals__["innovation_exceeds"] is filters.innovation_exceeds  # the premise
@@ -112,7 +115,7 @@ def test_the_glue_key_covers_what_a_plug_in_calls_in_another_file(tree):
     for module in (filters, vmath, blocks):
         with _edited(tree, module):
             assert blocks.glue_digest("src", [fn], path) != before, module.__name__
-    import blf_gym.env as env
+    import blf_gym.envs.env as env
 
     with _edited(tree, env):
         assert blocks.glue_digest("src", [fn], path) == before
@@ -126,7 +129,7 @@ def test_numba_per_function_caches_are_stamped_with_their_closure(tree):
     from numba.core.registry import CPUDispatcher
 
     import baselines.controllers  # noqa: F401 (imports every baseline module)
-    import blf_gym.envcore  # noqa: F401
+    import blf_gym.envs.envcore  # noqa: F401
 
     seen = 0
     for name, mod in list(sys.modules.items()):
@@ -141,11 +144,11 @@ def test_numba_per_function_caches_are_stamped_with_their_closure(tree):
                 assert locator.get_source_stamp()[1] == sources.digest(name)
                 seen += 1
     assert seen > 40  # the premise: the loop above found the cached functions
-    from blf_gym import vmath
+    from blf_gym.jit import vmath
 
-    before = sources.digest("blf_gym.reference", path=(str(tree),))
+    before = sources.digest("blf_gym.model.reference", path=(str(tree),))
     with _edited(tree, vmath):
-        assert sources.digest("blf_gym.reference", path=(str(tree),)) != before
+        assert sources.digest("blf_gym.model.reference", path=(str(tree),)) != before
 
 
 def test_imports_inside_functions_and_of_the_standard_library_are_not_followed(tmp_path):
@@ -183,8 +186,8 @@ def test_the_law_cache_and_the_nmpc_key_read_the_closure(monkeypatch):
 _RUN = """
 import sys
 import numpy as np
-from blf_gym.params import preset
-from blf_gym.simulate import simulate
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import simulate
 traj = simulate(preset("paper-0.1hz", duration=0.2), "proposed")
 assert sys.modules["blf_gym"].__file__.startswith(sys.argv[1]), sys.modules["blf_gym"].__file__
 print(repr(float(np.sum(traj.q)) + float(np.sum(traj.x3_hat))))
@@ -196,9 +199,9 @@ def test_an_edit_to_exp_reaches_a_warm_cache_and_so_does_its_revert(tmp_path):
     """The issue's case: build with an edited ``exp`` from empty caches, revert the edit, run again on
     the now warm caches. The second run must recompile (its notice says so) and give what the
     unedited code gives here, in this process, and not the edited result."""
-    from blf_gym import vmath
-    from blf_gym.params import preset
-    from blf_gym.simulate import simulate
+    from blf_gym.jit import vmath
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import simulate
 
     root = tmp_path / "tree"
     for pkg in (blf_gym, baselines):

@@ -10,9 +10,9 @@ import pytest
 
 import blf_gym  # noqa: F401
 from baselines.cbf import CBFFilterParams, cbf_apply, cbf_filter
-from blf_gym.blocks import model_length, nominal_length, nominal_model_into, work_length
-from blf_gym.dynamics import coriolis_matrix, gravity as gravity_vector, mass_matrix
-from blf_gym.params import ArmParams
+from blf_gym.plugins.blocks import model_length, nominal_length, nominal_model_into, work_length
+from blf_gym.model.dynamics import coriolis_matrix, gravity as gravity_vector, mass_matrix
+from blf_gym.model.params import ArmParams
 
 
 def _nominal(y, arm=ArmParams()):
@@ -58,7 +58,7 @@ def _bounds(s, p=CBFFilterParams()):
 
 
 def _accel(s, u):
-    """The acceleration a torque asks for, from the model of blf_gym.dynamics (not the filter's
+    """The acceleration a torque asks for, from the model of blf_gym.model.dynamics (not the filter's
     LDL^T operators) and the observer's disturbance estimate."""
     M = mass_matrix(s["y"])
     return np.linalg.solve(M, u - coriolis_matrix(s["y"], s["x2_hat"]) @ s["x2_hat"] - gravity_vector(s["y"])) + s["x3_hat"]

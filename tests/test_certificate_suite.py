@@ -1,4 +1,4 @@
-"""The certificate suite (blf_gym.scenarios): held-out cases where the filters' assumptions are
+"""The certificate suite (blf_gym.envs.scenarios): held-out cases where the filters' assumptions are
 expected to fail (early forces, corners and uniform draws of the documented safe ranges), drawn
 from seeds of their own, and refused for training like the stress suite."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blf_gym.params import preset
-from blf_gym.scenarios import CERTIFICATE_SEED_OFFSET, SAFE_RANGES, STRESS_SEED_OFFSET, sample_suite
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import CERTIFICATE_SEED_OFFSET, SAFE_RANGES, STRESS_SEED_OFFSET, sample_suite
 
 
 def _case(seed: int):

@@ -13,8 +13,8 @@ from hypothesis import strategies as st
 
 from baselines.classical import (CTCGains, PDGains, computed_torque_leso_output, computed_torque_output,
                                  pd_gravity_leso_output, pd_gravity_output)
-from blf_gym.blocks import work_length
-from blf_gym.params import ArmParams
+from blf_gym.plugins.blocks import work_length
+from blf_gym.model.params import ArmParams
 
 from test_blocks import nominal_signal  # noqa: E402 (the shared helper of the operator tests)
 
@@ -83,8 +83,8 @@ def test_each_runs_in_the_closed_loop_and_keeps_the_preset_in_bounds(name):
     """Registered through the entry points and compiled as any plug-in; with their chosen gains
     none breaks a bound on the first 2 s of the 0.1 Hz preset (the start is where a bad sign or a
     missing gravity term shows at once; docs/gains/*/gains.md list the selection episodes each keeps)."""
-    from blf_gym.params import preset
-    from blf_gym.simulate import simulate_batch
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import simulate_batch
 
     # two arms: the batch build, the one blf-eval compiles for every registered controller anyway
     traj = simulate_batch([preset("paper-0.1hz", duration=2.0)] * 2, name, noise_seeds=[0, 0], threads=1)[0]

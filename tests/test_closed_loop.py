@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from baselines.controllers import leso, proposed
-from blf_gym.metrics import summarize
-from blf_gym.params import preset
-from blf_gym.simulate import ClosedLoop, SimulationDiverged, simulate
+from blf_gym.results.metrics import summarize
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import ClosedLoop, SimulationDiverged, simulate
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def test_signals_are_on_the_1ms_grid_and_consistent(paper_runs):
     np.testing.assert_allclose(traj.k_a[:, 0], 0.5 * np.exp(-0.6 * traj.t) + 0.02, rtol=1e-12)
     np.testing.assert_allclose(traj.k_b[:, 0], 0.6 * np.exp(-0.6 * traj.t) + 0.04, rtol=1e-12)
     # H(u) is the dead-zone of u
-    from blf_gym.uncertainty import dead_zone_array
+    from blf_gym.model.uncertainty import dead_zone_array
 
     np.testing.assert_allclose(traj.h_u, dead_zone_array(traj.u), atol=1e-12)
     # no residual, so the commanded torque is the law's
@@ -186,7 +186,7 @@ def test_batch_with_threads_equals_single_runs():
 
 @pytest.mark.parametrize("extra", [1, 10**6])
 def test_a_batch_refuses_more_threads_than_the_process_may_use(extra):
-    from blf_gym.params import usable_cores
+    from blf_gym.model.params import usable_cores
 
     sc = preset("paper-0.1hz", duration=0.01)
     with pytest.raises(ValueError, match=r"ClosedLoop.threads must be an integer in \[1, %d\]" % usable_cores()):
@@ -239,7 +239,7 @@ def test_the_cache_keeps_every_kernel_and_drops_only_stale_builds_of_the_same_on
     # before: the stale-cache cleanup globbed simulate.{prefix}*, and the unfiltered kernel's prefix
     # (advance__n3__proposed__leso__) also matched both barrier kernels, so building one deleted the
     # others and every blf-eval run with the certified agent recompiled (about 30 s each)
-    from blf_gym.simulate import remove_stale_cache
+    from blf_gym.kernel.simulate import remove_stale_cache
 
     new, old = "0123456789", "abcdef0123"
     names = {
@@ -264,8 +264,8 @@ def test_building_one_kernel_leaves_the_others_in_the_disk_cache():
     # kernel's index file is still on disk at the end
     from pathlib import Path
 
-    from blf_gym.params import preset
-    from blf_gym.simulate import ClosedLoop
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import ClosedLoop
 
     sc = preset("paper-0.1hz", duration=0.01)
     loops = [ClosedLoop([sc], "proposed", threads=1),

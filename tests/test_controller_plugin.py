@@ -1,4 +1,4 @@
-"""The block protocol of blf_gym.blocks, as a user would use it, and the refusal of bad plug-ins.
+"""The block protocol of blf_gym.plugins.blocks, as a user would use it, and the refusal of bad plug-ins.
 
 A user's own law is written below as a plain Python function over named signals (its parameter
 names), declared as a ``Controller`` with a frozen, unit-carrying parameter dataclass, and run in
@@ -15,10 +15,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
-from blf_gym.blocks import Controller, Observer, connect, gravity
-from blf_gym.registry import available_controllers, make_controller, make_observer
-from blf_gym.params import ArmParams, preset
-from blf_gym.simulate import ClosedLoop, simulate
+from blf_gym.plugins.blocks import Controller, Observer, connect, gravity
+from blf_gym.plugins.registry import available_controllers, make_controller, make_observer
+from blf_gym.model.params import ArmParams, preset
+from blf_gym.kernel.simulate import ClosedLoop, simulate
 
 KP, KD = 50.0, 1.0  # N m/rad, N m s/rad
 
@@ -260,7 +260,7 @@ def _imports_none_of(setup: str, roots: tuple[str, ...]) -> None:
 
 
 def test_blf_gym_does_not_import_controllers_or_learning_libraries():
-    _imports_none_of("import blf_gym, blf_gym.simulate, blf_gym.metrics, blf_gym.registry",
+    _imports_none_of("import blf_gym, blf_gym.kernel.simulate, blf_gym.results.metrics, blf_gym.plugins.registry",
                      ("baselines", "agents", "torch", "stable_baselines3", "ray", "jax", "sbx"))
 
 
@@ -276,20 +276,24 @@ def test_blf_reproduce_module_does_not_import_torch():
     _imports_none_of("import baselines.reproduce", ("agents", "torch", "stable_baselines3"))
 
 
-def test_pairs_with_is_deprecated_and_the_signals_decide_the_pairing():
+def test_an_observer_serves_any_controller_whose_signals_it_provides():
+    # no pairing list: the signals decide, so an observer built from the LESO's parts serves a
+    # controller of its own author's, and a list of names is no longer accepted
     leso = make_observer("leso")
-    with pytest.warns(DeprecationWarning, match=r"Observer 'mine': pairs_with is deprecated"):
-        mine = Observer("mine", leso.rhs, leso.states, leso.params, pairs_with=("bc",))
-    # ignored: the observer still serves a controller it was not "paired" with, since it provides
-    # every signal that controller reads
+    mine = Observer("mine", leso.rhs, leso.states, leso.params)
     assert connect(_mypd(), mine, 3).observer is mine
+    with pytest.raises(TypeError, match="pairs_with"):
+        Observer("mine", leso.rhs, leso.states, leso.params, pairs_with=("bc",))
 
 
-def test_the_old_registry_name_still_works_and_says_where_it_moved():
-    code = ("import warnings; warnings.simplefilter('error'); "
-            "import blf_gym.controller")
+OLD_PATHS = ("params", "dynamics", "simulate", "blocks", "registry", "envcore", "env", "metrics", "vmath",
+             "core", "controller")
+"""Flat modules of blf_gym 0.1 before the sub-packages (CHANGELOG.md maps each to its new path)."""
+
+
+@pytest.mark.parametrize("name", OLD_PATHS)
+def test_the_old_flat_module_paths_are_gone(name):
+    # no shims: an old path fails at import, so nothing keeps working by accident on a stale name
+    code = f"import blf_gym.{name}"
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert p.returncode != 0 and "blf_gym.controller is deprecated; import from blf_gym.registry" in p.stderr
-    code = ("import warnings; warnings.simplefilter('ignore'); import blf_gym.controller as c, blf_gym.registry as r; "
-            "assert c.make_controller is r.make_controller and set(c.__all__) == set(r.__all__)")
-    assert subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120).returncode == 0
+    assert p.returncode != 0 and "ModuleNotFoundError" in p.stderr, p.stderr

@@ -16,9 +16,9 @@ import pytest
 from gymnasium.vector import AutoresetMode
 
 import blf_gym  # noqa: F401
-from blf_gym.metrics import score_vs_law
-from blf_gym.params import preset
-from blf_gym.simulate import simulate
+from blf_gym.results.metrics import score_vs_law
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 IDS = ("PlanarBLF-v0", "PlanarBLFResidual-v0")
@@ -121,7 +121,7 @@ def test_a_recorded_video_lasts_the_simulated_time(tmp_path, control_period, mod
 
 def _oracle(env, info):
     """The law plus the true disturbance's cancellation (agents/oracle.py): better than the law."""
-    from blf_gym.dynamics import mass_matrix
+    from blf_gym.model.dynamics import mass_matrix
 
     core = env.unwrapped.core
     if info is None:
@@ -246,7 +246,7 @@ def test_the_readmes_evaluate_policy_snippet_runs_without_warnings():
 
 
 def test_a_score_weight_needs_a_violation_penalty_that_makes_violations_lose():
-    from blf_gym.reward import PHI_CAP, SCORE_REWARD, RewardWeights
+    from blf_gym.kernel.reward import PHI_CAP, SCORE_REWARD, RewardWeights
 
     assert SCORE_REWARD.violation == 2 * PHI_CAP and SCORE_REWARD.alive == 0.0
     with pytest.raises(ValueError, match="violation must be >= 2 \\* PHI_CAP \\* score"):
@@ -265,7 +265,7 @@ def test_load_pretrained_gives_blf_evals_numbers():
     from agents import load_pretrained
     from agents.evaluate import build_scenarios, evaluate_agent
     from agents.loading import load_agent
-    from blf_gym.metrics import summarize
+    from blf_gym.results.metrics import summarize
 
     model, env = load_pretrained("ppo_residual", scenario="paper-0.5hz")
     core = env.venv.envs[0].unwrapped.core
@@ -361,7 +361,7 @@ def test_rl_zoo3_trains_the_zoo_config_and_evaluates_on_the_same_kwargs(tmp_path
 
 
 def test_the_vector_env_leaves_cores_to_the_learner_and_says_when_torch_competes():
-    from blf_gym.vector import default_threads
+    from blf_gym.envs.vector import default_threads
 
     cpus = os.cpu_count() or 1
     assert default_threads(64) == max(1, cpus // 2) and default_threads(1) == 1

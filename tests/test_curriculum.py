@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.envcore import MAX_BOUND_SCALE
-from blf_gym.params import preset
+from blf_gym.envs.envcore import MAX_BOUND_SCALE
+from blf_gym.model.params import preset
 
 
 def test_bound_scale_widens_every_drawn_funnel_by_exactly_its_factor_from_the_next_reset():
@@ -67,7 +67,7 @@ def test_a_bad_bound_scale_is_refused_by_name(value):
 
 
 def test_the_vector_env_takes_it_too():
-    from blf_gym.vector import PlanarBLFVectorEnv
+    from blf_gym.envs.vector import PlanarBLFVectorEnv
 
     v = PlanarBLFVectorEnv(num_envs=2, scenario="paper-0.5hz", bound_scale=2.0)
     v.reset(seed=0)

@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.params import preset
-from blf_gym.scenarios import apply_variations
-from blf_gym.simulate import ClosedLoop, simulate_batch
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import apply_variations
+from blf_gym.kernel.simulate import ClosedLoop, simulate_batch
 
 LAWS = ("bc", "lesobc", "proposed")
 
@@ -171,8 +171,8 @@ def test_a_real_violation_under_termination_is_not_called_a_divergence():
     # the stress suite's episodes that the proposed law violates at the default step (all 18 of the
     # 50 held-out ones, at 1.4-4.1 s), and a plain zero torque at the paper's 1 ms step (the arm
     # drifts out of its bounds without any instability): a violation, not a divergence
-    from blf_gym.envcore import EnvCore
-    from blf_gym.scenarios import STRESS_SEED_OFFSET, sample_suite
+    from blf_gym.envs.envcore import EnvCore
+    from blf_gym.envs.scenarios import STRESS_SEED_OFFSET, sample_suite
 
     seeds = [5, 7, 9, 10, 12, 13, 14, 16, 18, 20, 25, 31, 33, 38, 39, 42, 45, 49]
     scs = [sample_suite(np.random.default_rng(STRESS_SEED_OFFSET + k), preset("paper-0.1hz", duration=5), "stress")

@@ -68,11 +68,11 @@ def test_the_api_pages_show_no_raw_restructuredtext_role(site):
     raw = [f"{f.relative_to(site)}: {m.group(0)}" for f in pages for m in ROLE.finditer(f.read_text())]
     assert not raw, raw
     blocks = (site / "api" / "blocks.html").read_text()
-    # a documented target is a link: registry.py's :class:`~blf_gym.blocks.Observer` ...
-    assert re.search(r'<a class="autorefs[^"]*"[^>]*href="#blf_gym\.blocks\.Observer"[^>]*><code>Observer</code></a>',
+    # a documented target is a link: registry.py's :class:`~blf_gym.plugins.blocks.Observer` ...
+    assert re.search(r'<a class="autorefs[^"]*"[^>]*href="#blf_gym\.plugins\.blocks\.Observer"[^>]*><code>Observer</code></a>',
                      blocks)
     # ... and one the API pages do not document is plain code (its module has no page)
-    assert re.search(r'<span title="blf_gym\.blocks"><code>blf_gym\.blocks</code></span>', blocks)
+    assert re.search(r'<span title="blf_gym\.plugins\.blocks"><code>blf_gym\.plugins\.blocks</code></span>', blocks)
     # double backticks were code already, and none is left raw
     assert "<code>leso</code>" in blocks and not any("``" in f.read_text() for f in pages)
 

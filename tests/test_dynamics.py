@@ -1,4 +1,4 @@
-"""Tests of blf_gym.dynamics: the n-link planar arm with point masses (docs/model.md section 1).
+"""Tests of blf_gym.model.dynamics: the n-link planar arm with point masses (docs/model.md section 1).
 
 Every check compares the library against something built independently here: structural
 identities of Lagrangian mechanics (SPD inertia, skew-symmetry, Christoffel symbols from finite
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blf_gym.dynamics import (
+from blf_gym.model.dynamics import (
     coriolis_matrix,
     forward_kinematics,
     gravity,
@@ -22,7 +22,7 @@ from blf_gym.dynamics import (
     mass_matrix,
     pose_jacobian,
 )
-from blf_gym.params import ArmParams
+from blf_gym.model.params import ArmParams
 
 PAPER = ArmParams()  # l = (0.35, 0.30, 0.15), m = (0.23, 0.20, 0.10), g = 9.81
 
@@ -433,7 +433,7 @@ def test_pose_jacobian_matches_finite_differences(n):
 def test_ldl_factor_and_solve_against_numpy(n):
     """The closed loop solves M x = b with a square-root-free LDL^T factor: the factor must
     rebuild M (unit lower L, 1/D on its diagonal) and the solve must match numpy.linalg.solve."""
-    from blf_gym.dynamics import ldl_factor_into, ldl_solve_factored
+    from blf_gym.model.dynamics import ldl_factor_into, ldl_solve_factored
 
     rng = np.random.default_rng(n)
     mats = [mass_matrix(rng.uniform(-np.pi, np.pi, n), random_arm(rng, n)) for _ in range(3)]

@@ -22,14 +22,14 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401  (registers the ids)
-from blf_gym.bounds import error_bounds
-from blf_gym.envcore import RewardWeights, observation_layout
-from blf_gym.metrics import violation_mask
-from blf_gym.params import preset
-from blf_gym.reference import joint_reference
-from blf_gym.scenarios import SAFE_RANGES, VARIATIONS
-from blf_gym.simulate import ClosedLoop, simulate
-from blf_gym.vector import PlanarBLFVectorEnv
+from blf_gym.model.bounds import error_bounds
+from blf_gym.envs.envcore import RewardWeights, observation_layout
+from blf_gym.results.metrics import violation_mask
+from blf_gym.model.params import preset
+from blf_gym.model.reference import joint_reference
+from blf_gym.envs.scenarios import SAFE_RANGES, VARIATIONS
+from blf_gym.kernel.simulate import ClosedLoop, simulate
+from blf_gym.envs.vector import PlanarBLFVectorEnv
 
 IDS = ("PlanarBLF-v0", "PlanarBLFResidual-v0")
 ZERO = np.zeros(3, dtype=np.float32)
@@ -96,7 +96,7 @@ def test_make_with_module_prefix_in_a_fresh_interpreter(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, env=env, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.split() == ["blf_gym.env", "PlanarBLFEnv", "(31,)", "PlanarBLF-v0"]
+    assert out.stdout.split() == ["blf_gym.envs.env", "PlanarBLFEnv", "(31,)", "PlanarBLF-v0"]
 
 
 def test_make_vec_returns_the_native_vector_env():
@@ -648,7 +648,7 @@ def test_the_first_frame_shows_the_end_effector_its_legend_names():
     the end effector's position is that blue, not the arm's black or the background."""
     from matplotlib.colors import to_rgb
 
-    from blf_gym.dynamics import joint_positions
+    from blf_gym.model.dynamics import joint_positions
 
     env = gym.make("PlanarBLF-v0", render_mode="rgb_array")
     env.reset(seed=0)
@@ -744,7 +744,7 @@ def test_unknown_keyword_argument_is_a_value_error_listing_the_accepted_ones():
 
 
 def test_observation_index_matches_the_layout_table():
-    from blf_gym.envcore import observation_index
+    from blf_gym.envs.envcore import observation_index
 
     rows = observation_layout(3, privileged=True)
     idx = observation_index(3)
@@ -803,19 +803,3 @@ def test_relative_reward_is_one_per_step_on_average_for_the_law_itself():
     with pytest.raises(ValueError, match="violation must be >= "):
         gym.make("PlanarBLFResidual-v0", reward_weights={"relative": True, "alive": 0.0, "violation": 1e5})
     assert RewardWeights(relative=True, relative_cap=10.0).alive == pytest.approx(10.0 + 0.01)
-
-
-def test_the_old_env_core_module_still_works_and_says_where_it_moved():
-    """blf_gym.core was renamed blf_gym.envcore (the observation table moved to blf_gym.observation);
-    the old name re-exports the same objects and warns."""
-    import subprocess
-    import sys
-
-    code = "import warnings; warnings.simplefilter('error'); import blf_gym.core"
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert p.returncode != 0 and "blf_gym.core is deprecated; import from blf_gym.envcore" in p.stderr
-    code = ("import warnings; warnings.simplefilter('ignore'); import blf_gym.core as c, blf_gym.envcore as e, "
-            "blf_gym.observation as o; assert c.EnvCore is e.EnvCore and c.RewardWeights is e.RewardWeights; "
-            "assert c.OBSERVATION is o.OBSERVATION and c.Entry is o.Entry and set(c.__all__) == set(e.__all__)")
-    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert p.returncode == 0, p.stderr

@@ -1,4 +1,4 @@
-"""The env's arguments and info keys are declared once (blf_gym.envcore.ARGUMENTS, INFO_KEYS); the
+"""The env's arguments and info keys are declared once (blf_gym.envs.envcore.ARGUMENTS, INFO_KEYS); the
 docstring and the documentation site's tables are made from them. These tests hold the
 declarations to what the env really takes and returns, so the tables cannot drift."""
 
@@ -10,10 +10,10 @@ import gymnasium as gym
 import numpy as np
 
 import blf_gym  # noqa: F401  (registers the ids)
-from blf_gym.env import PlanarBLFEnv, arguments_table, info_table, observation_table, reward_terms_table
-from blf_gym.envcore import ARGUMENTS, INFO_KEYS, EnvCore
-from blf_gym.observation import observation_layout
-from blf_gym.reward import TERMS
+from blf_gym.envs.env import PlanarBLFEnv, arguments_table, info_table, observation_table, reward_terms_table
+from blf_gym.envs.envcore import ARGUMENTS, INFO_KEYS, EnvCore
+from blf_gym.envs.observation import observation_layout
+from blf_gym.kernel.reward import TERMS
 
 
 def test_every_keyword_argument_of_the_env_is_declared_once_in_order():

@@ -17,7 +17,7 @@ import pytest
 from agents.evaluate import (AGENT_BATCH, _Actor, _batch_plan, agent_episodes, agent_group_episodes,
                              build_scenarios, law_env_kwargs)
 from agents.loading import PRETRAINED, load_agent, pretrained_agents
-from blf_gym.metrics import episode_stats
+from blf_gym.results.metrics import episode_stats
 
 
 @pytest.mark.parametrize("name", pretrained_agents())

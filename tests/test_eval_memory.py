@@ -13,7 +13,7 @@ import numpy as np
 
 from agents.evaluate import (AGENT_BATCH, CONTROLLER_BATCH, agent_episodes, build_scenarios, controller_episodes,
                              law_reference, main)
-from blf_gym.metrics import episode_stats, summarize
+from blf_gym.results.metrics import episode_stats, summarize
 
 
 def _peak(fn) -> int:

@@ -1,6 +1,6 @@
 """blf-eval's output set on a bad day: a full disk, an interrupted run, a rerun into an old folder.
 
-A full disk is simulated, not needed: ``blf_gym.io.atomic_path`` (through which every file of the
+A full disk is simulated, not needed: ``blf_gym.results.io.atomic_path`` (through which every file of the
 set is written) is wrapped so that one chosen file's write fails with ENOSPC, the way ``write()``
 raises it: an OSError with no file name. The command must then name that file in one
 ``blf-eval: error:`` line with exit code 2, and leave the folder recognisably incomplete: no
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-import blf_gym.io as bio
+import blf_gym.results.io as bio
 from agents.evaluate import _parser
 from agents.evaluate import main as eval_main
 

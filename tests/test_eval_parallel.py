@@ -17,9 +17,9 @@ import pytest
 
 from agents.evaluate import main as eval_main
 from agents.loading import PRETRAINED
-from blf_gym.envcore import EnvCore
-from blf_gym.metrics import METRIC_CHANNELS
-from blf_gym.simulate import CHANNELS
+from blf_gym.envs.envcore import EnvCore
+from blf_gym.results.metrics import METRIC_CHANNELS
+from blf_gym.kernel.simulate import CHANNELS
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-import blf_gym.registry as registry
+import blf_gym.plugins.registry as registry
 from agents.evaluate import main as eval_main
 
 DOC = (Path(__file__).resolve().parents[1] / "docs" / "extending.md").read_text()

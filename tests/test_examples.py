@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.registry import available_controllers, available_observers
-from blf_gym.params import preset
-from blf_gym.simulate import simulate
+from blf_gym.plugins.registry import available_controllers, available_observers
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 INSTALL = 'pip install -c constraints-cpu.txt -e ".[dev,sweep,zoo,jax,mpc,docs]" ./examples/blf_integral ./examples/blf_eso4'

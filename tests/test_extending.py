@@ -1,7 +1,7 @@
 """docs/extending.md, followed recipe by recipe from the page's own code blocks.
 
 Each recipe is one file: a controller module, an observer module, a row of the observation table
-and a patch of blf_gym/reward.py. The expected values are independent of the code under test: the
+and a patch of blf_gym/kernel/reward.py. The expected values are independent of the code under test: the
 integral state against a sum of the recorded error, the observer against the true velocity, the
 observation entry against the law's published output, the reward term against the recorded torques.
 """
@@ -22,9 +22,9 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401 (registers the ids)
-import blf_gym.observation as observation
-from blf_gym.params import preset
-from blf_gym.simulate import ClosedLoop, simulate
+import blf_gym.envs.observation as observation
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import ClosedLoop, simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 DOC = (ROOT / "docs" / "extending.md").read_text()
@@ -145,7 +145,7 @@ print(json.dumps(out))
 @pytest.mark.slow
 def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
     shutil.copytree(ROOT / "blf_gym", tmp_path / "blf_gym", ignore=shutil.ignore_patterns("__pycache__"))
-    _apply(recipe("reward"), tmp_path / "blf_gym" / "reward.py")
+    _apply(recipe("reward"), tmp_path / "blf_gym" / "kernel" / "reward.py")
     env = {**os.environ, "PYTHONPATH": str(tmp_path)}
     p = subprocess.run([sys.executable, "-c", _REWARD_PROBE % {"root": str(tmp_path)}], capture_output=True,
                        text=True, timeout=600, env=env, cwd=tmp_path)
@@ -162,8 +162,8 @@ def test_the_reward_recipe_is_a_change_in_one_file(tmp_path):
 
 _KNOB_PROBE = r"""
 import json, numpy as np, blf_gym
-from blf_gym import scenarios
-from blf_gym.params import preset
+from blf_gym.envs import scenarios
+from blf_gym.model.params import preset
 assert blf_gym.__file__.startswith(%(root)r), blf_gym.__file__
 out = {"names": list(scenarios.VARIATIONS), "doc": scenarios.__doc__, "suites": {}}
 for suite, seeds in (("randomized", range(10_000, 10_060)), ("stress", range(20_000, 20_200))):
@@ -187,10 +187,10 @@ print(json.dumps(out))
 def test_the_scenario_knob_recipe_is_one_row_and_changes_no_existing_draw(tmp_path):
     from dataclasses import replace as dc_replace
 
-    from blf_gym import scenarios
+    from blf_gym.envs import scenarios
 
     shutil.copytree(ROOT / "blf_gym", tmp_path / "blf_gym", ignore=shutil.ignore_patterns("__pycache__"))
-    path = tmp_path / "blf_gym" / "scenarios.py"
+    path = tmp_path / "blf_gym" / "envs" / "scenarios.py"
     text = path.read_text()
     end = "\n)\n\"\"\"The scenario knobs, one row each"
     assert text.count(end) == 1  # the end of the KNOBS table, where the page says to add the row
@@ -230,7 +230,7 @@ def test_an_observation_row_reads_any_named_signal(monkeypatch):
     """Rows of each source kind, appended to the table, are filled from their signals: the true
     angles, an observer state, a bound's second derivative and a last-step column, each compared
     with the same signal read independently (the loop's state, the bounds' own function, info)."""
-    from blf_gym.bounds import BOUND_LEN, bounds_into
+    from blf_gym.model.bounds import BOUND_LEN, bounds_into
 
     E = observation.Entry
     rows = (E("q_true", None, "q_{j}", "rad", -50.0, 50.0, "optional", "state:q"),

@@ -11,11 +11,11 @@ import pytest
 
 import blf_gym  # noqa: F401
 from agents.falsify import Target, case_scenario, falsify, first_cases, replay, rho, robustness, space
-from blf_gym.metrics import episode_stats
-from blf_gym.observation import observation_index
-from blf_gym.params import preset
-from blf_gym.reference import joint_reference
-from blf_gym.scenarios import apply_variations
+from blf_gym.results.metrics import episode_stats
+from blf_gym.envs.observation import observation_index
+from blf_gym.model.params import preset
+from blf_gym.model.reference import joint_reference
+from blf_gym.envs.scenarios import apply_variations
 
 DURATION = 5.0  # s: the planted push happens within the first period of a 0.5 Hz reference
 

@@ -16,9 +16,9 @@ from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from baselines.filters import BarrierFilterParams, barrier_apply, barrier_filter
-from blf_gym.params import preset
-from blf_gym.scenarios import sample_suite
-from blf_gym.simulate import simulate_batch
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import sample_suite
+from blf_gym.kernel.simulate import simulate_batch
 
 P = BarrierFilterParams()
 UMAX = 150.0

@@ -272,9 +272,9 @@ def test_plain_agents_get_their_own_panel(tmp_path):
     from PIL import Image
 
     from agents.evaluate import _plots
-    from blf_gym.metrics import summarize
-    from blf_gym.params import preset
-    from blf_gym.simulate import simulate
+    from blf_gym.results.metrics import summarize
+    from blf_gym.model.params import preset
+    from blf_gym.kernel.simulate import simulate
 
     tr = simulate(preset("paper-0.1hz", duration=0.05), "proposed")
     law = summarize([tr], "proposed", "baseline", "paper-0.1hz", 1e-4)
@@ -323,7 +323,7 @@ def test_the_paper_step_gives_one_message_and_a_failing_exit(capsys):
 
 
 def test_plain_mode_divergence_blames_the_actions_not_the_step():
-    from blf_gym.simulate import divergence_message
+    from blf_gym.kernel.simulate import divergence_message
 
     assert "actions" in divergence_message(2, 1.0, 1e-4, 100, "none")
     assert "too large" in divergence_message(2, 1.0, 1e-3, 100, "proposed")

@@ -14,8 +14,8 @@ from hypothesis import strategies as st
 
 import blf_gym  # noqa: F401
 from baselines.floor import FloorPolicy, floor
-from blf_gym.observation import (SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index)
-from blf_gym.params import ArmParams
+from blf_gym.envs.observation import (SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY, observation_index)
+from blf_gym.model.params import ArmParams
 
 from test_classical import _pinocchio  # noqa: E402 (the point-mass arm as a Pinocchio model)
 
@@ -52,7 +52,7 @@ def test_the_floors_torque_is_inverse_dynamics_of_the_commanded_acceleration(y, 
 
 
 def test_the_floor_is_a_registered_policy_that_acts_in_its_env_and_refuses_bad_input():
-    from blf_gym.registry import make_policy
+    from blf_gym.plugins.registry import make_policy
 
     pol = make_policy("floor")
     assert isinstance(pol, FloorPolicy) and pol.env_kwargs == {"controller": "none", "control_period": 0.01}

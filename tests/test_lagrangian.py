@@ -1,5 +1,5 @@
 """PPO-Lagrangian (agents/lagrangian.py), its blf-train config, and the Safety-Gymnasium-style
-wrapper (blf_gym/safety.py)."""
+wrapper (blf_gym/envs/safety.py)."""
 
 from __future__ import annotations
 
@@ -516,7 +516,7 @@ def test_wrapper_is_exported_without_torch():
     import subprocess
     import sys
 
-    code = ("import sys, blf_gym.safety; "
+    code = ("import sys, blf_gym.envs.safety; "
             "bad = sorted(m for m in sys.modules if m.split('.')[0] in ('torch', 'stable_baselines3', 'agents')); "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=Path(__file__).resolve().parents[1])

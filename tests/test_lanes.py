@@ -18,10 +18,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from blf_gym.params import preset
-from blf_gym.scenarios import sample_suite
-from blf_gym import simulate
-from blf_gym.simulate import LANES, ClosedLoop
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import sample_suite
+from blf_gym.kernel import simulate
+from blf_gym.kernel.simulate import LANES, ClosedLoop
 
 N = 13
 CALLS = (40, 17, 40, 60)

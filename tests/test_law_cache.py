@@ -15,7 +15,7 @@ import pytest
 import agents.evaluate as ev
 from agents.lawcache import _package_files, code_digest, law_key, load_law, store_law
 from agents.loading import PRETRAINED
-from blf_gym.metrics import EpisodeStats
+from blf_gym.results.metrics import EpisodeStats
 
 AGENT = str(PRETRAINED / "ppo_residual")
 ARGS = ["--suite-seeds", "3", "--duration", "0.3", "--no-progress", "--no-plots"]
@@ -58,7 +58,7 @@ def test_a_second_run_reuses_the_law_and_scores_to_the_bit(cache, tmp_path, monk
     assert ev.main(["--agents", AGENT, "--out", str(tmp_path / "a"), *ARGS]) == 0
     # four groups (two presets, three randomized and three stress episodes): the law's row on the
     # inner path per group, and the agent's env reference for all groups in one batched run; the
-    # second yardstick's episodes (agents.evaluate.REFERENCE on the inner path) are kept too, per group
+    # second yardstick's episodes (blf_gym.envs.protocol.REFERENCE on the inner path) are kept too, per group
     assert calls == {"inner": 4, "env": 1}
     assert len(list(cache.glob("*.json"))) == 4 + 4 + 4
     calls.update(inner=0, env=0)
@@ -113,7 +113,7 @@ def test_everything_a_result_depends_on_changes_the_key():
     assert len({base, *others}) == len(others) + 1
     # the code: every source file of the packages the closed loop and the scoring live in
     names = {p.name for p in _package_files("blf_gym")} | {p.name for p in _package_files("baselines")}
-    assert {"simulate.py", "core.py", "metrics.py", "blocks.py", "controllers.py"} <= names
+    assert {"simulate.py", "envcore.py", "metrics.py", "blocks.py", "controllers.py"} <= names
     assert "evaluate.py" in {p.name for p in _package_files("agents")}
     assert len(code_digest()) == 64
 

@@ -1,4 +1,4 @@
-"""Difficulty levels (blf_gym.levels): each a fixed bundle of scenario knobs applied after the draw,
+"""Difficulty levels (blf_gym.envs.levels): each a fixed bundle of scenario knobs applied after the draw,
 so a level's episode k is the full benchmark's episode k with parts taken away; level 3, the
 default, is the benchmark itself; every path (single env, vector env, blf-eval) applies the same
 map and blf-eval's records name their level."""
@@ -13,10 +13,10 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.levels import DEFAULT_LEVEL, LEVELS, WIDE_BOUNDS, apply_level
-from blf_gym.params import ArmParams, preset
-from blf_gym.vector import PlanarBLFVectorEnv
-from blf_gym.scenarios import sample_suite
+from blf_gym.envs.levels import DEFAULT_LEVEL, LEVELS, WIDE_BOUNDS, apply_level
+from blf_gym.model.params import ArmParams, preset
+from blf_gym.envs.vector import PlanarBLFVectorEnv
+from blf_gym.envs.scenarios import sample_suite
 
 
 def _draw(seed: int):

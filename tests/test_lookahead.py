@@ -1,4 +1,4 @@
-"""The look-ahead hand-back (blf_gym/lookahead.py; docs/model.md section 11): its demand against
+"""The look-ahead hand-back (blf_gym/envs/lookahead.py; docs/model.md section 11): its demand against
 finite differences of the reference, its schedule against a brute-force reading of the same
 definition, the env withholding the residual exactly on the scheduled periods (the torque is then
 the law's), the decay it rests on (the law alone forgets a difference of state a hundredfold within
@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.bounds import error_bounds
-from blf_gym.lookahead import (DEFAULT_DEMAND, DEFAULT_HORIZON, LookaheadParams, lookahead_gate, reference_demand,
+from blf_gym.model.bounds import error_bounds
+from blf_gym.envs.lookahead import (DEFAULT_DEMAND, DEFAULT_HORIZON, LookaheadParams, lookahead_gate, reference_demand,
                                split_lookahead)
-from blf_gym.params import preset
-from blf_gym.reference import joint_reference
-from blf_gym.scenarios import apply_variations, sample_suite
-from blf_gym.simulate import simulate_batch
+from blf_gym.model.params import preset
+from blf_gym.model.reference import joint_reference
+from blf_gym.envs.scenarios import apply_variations, sample_suite
+from blf_gym.kernel.simulate import simulate_batch
 
 FAST = apply_variations(preset("paper-0.1hz", duration=4.0), {"frequency": 0.5})
 
@@ -157,7 +157,7 @@ def test_an_episode_started_along_the_reference_reads_the_schedule_at_its_own_ti
 
 
 def test_the_predictive_rule_hands_back_where_the_law_alone_on_the_design_plant_comes_close():
-    from blf_gym.lookahead import design_scenario, margin_gate, predicted_gates
+    from blf_gym.envs.lookahead import design_scenario, margin_gate, predicted_gates
 
     noisy = apply_variations(FAST, {"force": 60.0, "force_onset": 1.0, "friction_scale": 2.0, "payload": 0.3,
                                     "angle_noise_std": 1e-4})

@@ -1,7 +1,7 @@
 """The results record (docs/model.md section 8) from hand-built trajectories, and results.json / .csv I/O.
 
 Every expected value is computed here from the definitions in docs/model.md section 8 with plain Python
-loops (math module), independently of blf_gym.metrics' vectorised code; a few are also written
+loops (math module), independently of blf_gym.results.metrics' vectorised code; a few are also written
 out as literals with the arithmetic in a comment.
 """
 
@@ -15,7 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from blf_gym.metrics import read_results, summarize, violation_mask, write_results
+from blf_gym.results.metrics import read_results, summarize, violation_mask, write_results
 
 # docs/model.md section 8, copied from its table (not imported from the code under test)
 SPEC_FIELDS = (
@@ -345,7 +345,7 @@ def test_written_files_have_ordinary_permissions(tmp_path):
     import os
     import stat
 
-    from blf_gym.io import atomic_write_text
+    from blf_gym.results.io import atomic_write_text
 
     atomic_write_text(tmp_path / "a.txt", "x")
     umask = os.umask(0)
@@ -359,7 +359,7 @@ def test_written_files_have_ordinary_permissions(tmp_path):
 
 
 def test_score_vs_law_is_the_geometric_mean_of_the_law_over_the_policy():
-    from blf_gym.metrics import score_vs_law
+    from blf_gym.results.metrics import score_vs_law
 
     law = [0.2, 0.4, 0.8]
     assert score_vs_law(law, law) == pytest.approx(1.0)

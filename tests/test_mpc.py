@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401  (registers the env)
-from blf_gym.dynamics import coriolis_matrix, gravity, mass_matrix
-from blf_gym.observation import PREVIEW_EXTRAS, PREVIEW_POINTS, PREVIEW_STEP, observation_index, observation_layout
-from blf_gym.params import BoundParams, DeadZoneParams, ForceParams, FrictionParams, preset
+from blf_gym.model.dynamics import coriolis_matrix, gravity, mass_matrix
+from blf_gym.envs.observation import PREVIEW_EXTRAS, PREVIEW_POINTS, PREVIEW_STEP, observation_index, observation_layout
+from blf_gym.model.params import BoundParams, DeadZoneParams, ForceParams, FrictionParams, preset
 
 ca = pytest.importorskip("casadi")
 
@@ -43,9 +43,9 @@ def test_the_preview_gives_the_reference_and_bounds_the_env_shows_later():
 
 
 def test_the_casadi_model_is_the_kernels_nominal_arm():
-    """Derived from the Lagrangian here, checked against blf_gym.dynamics's M, C and G, and the
-    friction against blf_gym.uncertainty's."""
-    from blf_gym.uncertainty import friction
+    """Derived from the Lagrangian here, checked against blf_gym.model.dynamics's M, C and G, and the
+    friction against blf_gym.model.uncertainty's."""
+    from blf_gym.model.uncertainty import friction
 
     fp = FrictionParams()
     bare, rough = casadi_dynamics(), casadi_dynamics(friction=fp)
@@ -157,8 +157,8 @@ def _run(policy, scenario, steps):
 
 
 def test_it_tracks_the_nominal_plant_better_than_bc():
-    from blf_gym.simulate import simulate_batch
-    from blf_gym.registry import make_controller
+    from blf_gym.kernel.simulate import simulate_batch
+    from blf_gym.plugins.registry import make_controller
 
     sc = _nominal(wide=True, duration=1.0)
     errs, _ = _run(NMPCPolicy(NMPCParams(horizon=10, **_NO_FRICTION), compiled=False), sc, 100)
@@ -259,7 +259,7 @@ def test_the_registered_policy_runs_under_evaluate_policy():
     from stable_baselines3.common.env_util import make_vec_env
     from stable_baselines3.common.evaluation import evaluate_policy
 
-    from blf_gym.registry import available_policies, make_policy
+    from blf_gym.plugins.registry import available_policies, make_policy
 
     assert "nmpc" in available_policies()
     pol = make_policy("nmpc", horizon=5, compiled=False, **_NO_FRICTION)

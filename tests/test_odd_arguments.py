@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.envcore import MAX_ARMS, EnvCore
-from blf_gym.env import PlanarBLFEnv
-from blf_gym.params import MAX_DURATION, SimParams
+from blf_gym.envs.envcore import MAX_ARMS, EnvCore
+from blf_gym.envs.env import PlanarBLFEnv
+from blf_gym.model.params import MAX_DURATION, SimParams
 
 
 @pytest.mark.parametrize("controller", ["none", None])
@@ -69,7 +69,7 @@ def test_a_huge_num_envs_is_refused_before_any_allocation():
 @pytest.mark.parametrize("duration", [1e6, MAX_DURATION * 1.001])
 def test_a_very_long_episode_is_refused_with_its_reason(duration):
     # before: duration=1e6 failed at construction with MemoryError: Unable to allocate 22.4 GiB
-    with pytest.raises(ValueError, match=r"duration must be .* 3600\] s \(blf_gym.params.MAX_DURATION"):
+    with pytest.raises(ValueError, match=r"duration must be .* 3600\] s \(blf_gym.model.params.MAX_DURATION"):
         gym.make("PlanarBLF-v0", duration=duration)
     with pytest.raises(ValueError, match="SimParams.duration"):
         SimParams(duration=duration)
@@ -132,7 +132,7 @@ def test_the_env_docstring_states_the_defaults_the_code_has():
     # before: it said the default reward was the shaped one and that there was no max_episode_steps
     from dataclasses import fields
 
-    from blf_gym.reward import SCORE_REWARD
+    from blf_gym.kernel.reward import SCORE_REWARD
 
     doc = PlanarBLFEnv.__doc__
     for f in fields(SCORE_REWARD):

@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from blf_gym.params import (
+from blf_gym.model.params import (
     ArmParams,
     BoundParams,
     DeadZoneParams,

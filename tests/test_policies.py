@@ -8,9 +8,9 @@ import pytest
 
 import blf_gym  # noqa: F401
 from baselines.policies import BaselinePolicy
-from blf_gym.metrics import summarize
-from blf_gym.params import preset
-from blf_gym.simulate import simulate
+from blf_gym.results.metrics import summarize
+from blf_gym.model.params import preset
+from blf_gym.kernel.simulate import simulate
 
 
 def _policy_run(name: str, scenario: str, duration: float):

@@ -13,9 +13,9 @@ import pytest
 
 from baselines.funnel import FunnelGains, funnel
 from baselines.ppc import ppc, ppc_output
-from blf_gym.blocks import nominal_length
-from blf_gym.params import DeadZoneParams, ForceParams, FrictionParams, preset
-from blf_gym.simulate import simulate_batch
+from blf_gym.plugins.blocks import nominal_length
+from blf_gym.model.params import DeadZoneParams, ForceParams, FrictionParams, preset
+from blf_gym.kernel.simulate import simulate_batch
 
 
 def _signals(t):

@@ -12,17 +12,17 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.envcore import observation_index
-from blf_gym.metrics import summarize
-from blf_gym.params import preset
-from blf_gym.scenarios import (
+from blf_gym.envs.envcore import observation_index
+from blf_gym.results.metrics import summarize
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import (
     STRESS_RANGES,
     STRESS_SEED_OFFSET,
     SUITE_RANGES,
     outside_training,
     sample_suite,
 )
-from blf_gym.simulate import simulate
+from blf_gym.kernel.simulate import simulate
 
 IDX = observation_index(3)
 
@@ -241,3 +241,25 @@ def test_results_record_what_produced_them(tiny_run, tmp_path):
     assert prov["versions"]["blf-gym"] and "--scenario-kwargs" in prov["command"]
     csv_text = (out / "results.csv").read_text()
     assert "scenario_kwargs" in csv_text.splitlines()[0] and "payload" in csv_text
+
+
+def test_the_suites_seed_ranges_never_meet():
+    # each suite's episode k uses seed offset + k: the ranges stay apart for every count a command
+    # scores (blf-eval's protocol, the certificate suite's 120 cases, a falsifier's replays use
+    # their own seeds), and every training seed an agent uses lies below the first of them
+    from blf_gym.envs import protocol as p
+
+    starts = sorted(p.suite_seed_offset(s) for s in p.SUITES)
+    assert starts == [p.EVAL_SEED_OFFSET, p.STRESS_SEED_OFFSET, p.CERTIFICATE_SEED_OFFSET]
+    assert all(b - a >= p.SUITE_SEED_SPAN for a, b in zip(starts, starts[1:]))
+    assert max(p.PROTOCOL_SEEDS.values()) < p.SUITE_SEED_SPAN
+    assert set(p.HELD_OUT_SUITES) < set(p.SUITES) and "randomized" not in p.HELD_OUT_SUITES
+    assert "stress" not in p.CURVE_GROUPS and "certificate" not in p.CURVE_GROUPS
+    with pytest.raises(ValueError, match="unknown suite 'nope'"):
+        p.suite_seed_offset("nope")
+    # the scenario module and blf-eval read the same objects, not copies
+    import agents.evaluate as ev
+    from blf_gym.envs import scenarios as sc
+
+    assert sc.STRESS_SEED_OFFSET is p.STRESS_SEED_OFFSET and ev.EVAL_SEED_OFFSET is p.EVAL_SEED_OFFSET
+    assert ev.suite_seed_offset is p.suite_seed_offset

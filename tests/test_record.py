@@ -1,12 +1,12 @@
-"""The env's store of recorded samples (blf_gym.envcore._Record) against a plain list of per-arm
+"""The env's store of recorded samples (blf_gym.envs.envcore._Record) against a plain list of per-arm
 copies: slabs with full and partial counts, arms restarting at different steps, releases, and the
 store running out of slabs (dropping what no episode reads, or growing)."""
 
 import numpy as np
 import pytest
 
-from blf_gym.envcore import _Record
-from blf_gym.simulate import N_CHANNELS
+from blf_gym.envs.envcore import _Record
+from blf_gym.kernel.simulate import N_CHANNELS
 
 
 @pytest.mark.parametrize("seed", range(6))

@@ -1,4 +1,4 @@
-"""Tests of blf_gym.reference.joint_reference: the paper's circle by inverse kinematics (docs/model.md section 2).
+"""Tests of blf_gym.model.reference.joint_reference: the paper's circle by inverse kinematics (docs/model.md section 2).
 
 References used here are independent of the library: the Cartesian circle itself (through a
 forward kinematics written in this file), docs/model.md section 2's closed form of the smooth branch,
@@ -12,8 +12,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from blf_gym.params import preset
-from blf_gym.reference import joint_reference
+from blf_gym.model.params import preset
+from blf_gym.model.reference import joint_reference
 
 PRESETS = ["paper-0.1hz", "paper-0.5hz"]
 # k of docs/model.md section 2: cos(q2 / 2) = k cos(pi f t) on the smooth branch (law of cosines).

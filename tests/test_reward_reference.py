@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-import blf_gym.envcore as core_module
+import blf_gym.envs.envcore as core_module
 
 
 def _episode_rewards(env_id, scenario, seed, scale, term=False, duration=2.5):
@@ -49,7 +49,7 @@ def test_the_lazy_reference_is_the_whole_one_computed_in_one_go():
     # and it is the law's own running error: an independent run of the law alone on the inner path
     from dataclasses import replace
 
-    from blf_gym.simulate import simulate
+    from blf_gym.kernel.simulate import simulate
 
     tr = simulate(replace(core.scenarios[0], angle_noise_std=0.0), "proposed")
     np.testing.assert_allclose(whole[-1], np.sum(tr.e1 ** 2, axis=0), rtol=1e-12)

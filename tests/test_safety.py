@@ -8,7 +8,7 @@ import gymnasium as gym
 import numpy as np
 
 import blf_gym
-from blf_gym.safety import SafetyGymnasiumVectorWrapper
+from blf_gym.envs.safety import SafetyGymnasiumVectorWrapper
 
 KW = dict(duration=0.05, terminate_on_violation=False)
 

@@ -1,5 +1,5 @@
 """The second yardstick: every blf-eval record carries its score against the reference controller
-(agents.evaluate.REFERENCE), computed as score_vs_law is, and the reference is never scored
+(blf_gym.envs.protocol.REFERENCE), computed as score_vs_law is, and the reference is never scored
 against itself."""
 
 from __future__ import annotations
@@ -9,7 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from agents.evaluate import REFERENCE, main as eval_main
+from agents.evaluate import main as eval_main
+from blf_gym.envs.protocol import REFERENCE
 
 ARGS = ["--scenarios", "paper-0.1hz", "--suite-seeds", "2", "--duration", "1", "--no-progress", "--no-plots",
         "--agents"]
@@ -48,7 +49,7 @@ def test_an_unknown_reference_is_refused_by_name(capsys):
 
 def _rec(policy, rmse, kind="controller", base=None, seed=None, scenario="randomized", **extra):
     """A blf-eval record on four shared episodes, as much of one as agents.report reads."""
-    from blf_gym.metrics import score_vs_law
+    from blf_gym.results.metrics import score_vs_law
 
     law = LAW_RMSE
     r = {"policy": policy if seed is None else f"{policy}_s{seed}", "kind": kind, "scenario": scenario,

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401
-from blf_gym.bounds import error_bounds
-from blf_gym.reference import joint_reference
+from blf_gym.model.bounds import error_bounds
+from blf_gym.model.reference import joint_reference
 
 SHAPED = {"tracking": 1.0, "torque": 0.01}
 
@@ -158,8 +158,8 @@ def test_the_law_scale_covers_the_law_and_is_an_agent_action_that_reproduces_it(
     env's own draws; checked against the law's torques read from simulate_batch's trajectories."""
     from dataclasses import replace
 
-    from blf_gym.envcore import LAW_SCALE_MARGIN, LAW_SCALE_SKIP, law_action_scale
-    from blf_gym.simulate import simulate
+    from blf_gym.envs.envcore import LAW_SCALE_MARGIN, LAW_SCALE_SKIP, law_action_scale
+    from blf_gym.kernel.simulate import simulate
 
     scale = law_action_scale("paper-0.1hz")
     tr = simulate(replace(blf_gym.preset("paper-0.1hz"), angle_noise_std=0.0))
@@ -177,7 +177,7 @@ def test_a_run_trains_with_the_options_and_is_scored_without_them(tmp_path, monk
 
     from agents.loading import scoring_env_kwargs
     from agents.train import train
-    from blf_gym.envcore import EnvCore
+    from blf_gym.envs.envcore import EnvCore
 
     starts: list[int] = []
     original = EnvCore._start_steps
@@ -215,7 +215,7 @@ def test_a_run_trains_with_the_options_and_is_scored_without_them(tmp_path, monk
 @pytest.mark.parametrize("bad", [{"episodes": 0}, {"episodes": "x"}, {"margin": 0.5}, {"seed": -1}, {"level": 7},
                                  {"max_torque": -1.0}])
 def test_law_action_scale_refuses_bad_arguments_by_name(bad):
-    from blf_gym.envcore import law_action_scale
+    from blf_gym.envs.envcore import law_action_scale
 
     with pytest.raises(ValueError, match=f"law_action_scale.{next(iter(bad))}"):
         law_action_scale("paper-0.1hz", **bad)

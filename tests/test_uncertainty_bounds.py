@@ -9,9 +9,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from blf_gym.bounds import BOUND_LEN, bounds_into, error_bounds
-from blf_gym.params import BoundParams
-from blf_gym.uncertainty import dead_zone, dead_zone_array
+from blf_gym.model.bounds import BOUND_LEN, bounds_into, error_bounds
+from blf_gym.model.params import BoundParams
+from blf_gym.model.uncertainty import dead_zone, dead_zone_array
 
 # ---------------------------------------------------------------------------------------------
 # Dead-zone

@@ -1,4 +1,4 @@
-"""The one-exp tanh used by the friction term (blf_gym.uncertainty._tanh).
+"""The one-exp tanh used by the friction term (blf_gym.model.uncertainty._tanh).
 
 It replaces libm's tanh inside the compiled kernel, so it must agree with numpy.tanh to a few
 units of round-off in absolute terms (the friction term multiplies it by c = 0.2 N m) and be odd,
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from blf_gym.uncertainty import _tanh
+from blf_gym.model.uncertainty import _tanh
 
 ATOL = 3e-16
 

@@ -1,5 +1,5 @@
 """A varied scenario carries its variations in its name everywhere, with one label: the env's
-info["scenario"] and render title, and blf-eval's rows, from the one function in blf_gym.scenarios."""
+info["scenario"] and render title, and blf-eval's rows, from the one function in blf_gym.envs.scenarios."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import blf_gym  # noqa: F401 (registers the ids)
-from blf_gym.params import preset
-from blf_gym.scenarios import apply_variations, sample_suite, variation_label, varied_name
+from blf_gym.model.params import preset
+from blf_gym.envs.scenarios import apply_variations, sample_suite, variation_label, varied_name
 
 
 def test_the_label_is_sorted_canonical_and_short():

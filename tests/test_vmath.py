@@ -1,4 +1,4 @@
-"""The kernel's own elementary functions (blf_gym.vmath) against NumPy's, which call the C library.
+"""The kernel's own elementary functions (blf_gym.jit.vmath) against NumPy's, which call the C library.
 
 The bounds asserted are the ones the module's docstring and docs/model.md state: 1 ulp for sin,
 cos, exp and acos, 2 ulp for atan2, and the special values (NaN, infinities, underflow to 0 and to
@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numba import njit
 
-from blf_gym import vmath
+from blf_gym.jit import vmath
 
 
 @njit(cache=True, error_model="numpy")

@@ -18,7 +18,7 @@ import argparse
 import json
 from pathlib import Path
 
-from blf_gym.io import atomic_path, atomic_write_text
+from blf_gym.results.io import atomic_path, atomic_write_text
 
 TAGS = ("lagrangian/mean_episode_cost", "lagrangian/cost_limit", "lagrangian/multiplier", "rollout/ep_rew_mean",
         "rollout/ep_len_mean", "curriculum/bound_scale")

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# certificate_broken on the held-out certificate suite (blf_gym.scenarios, "certificate"): 120
+# certificate_broken on the held-out certificate suite (blf_gym.envs.scenarios, "certificate"): 120
 # episodes (early forces, corners and uniform draws of the documented safe ranges, seeds from
 # 30,000), the shipped certified residual through each filter, without and with the hand-back
 # monitor (handback = e2_max / (3 k0) = 3.3e-3 rad at the defaults), beside the law alone. A report:

@@ -1,5 +1,5 @@
 """The look-ahead hand-back's two numbers, from the training suite only (docs/model.md section 11,
-"The look-ahead hand-back"; blf_gym.lookahead):
+"The look-ahead hand-back"; blf_gym.envs.lookahead):
 
 * ``horizon_s``: how long the law alone takes to shrink a difference of state a hundredfold. Each
   of 16 training-suite draws is run twice by the law alone, noise-free, from the reference and
@@ -9,7 +9,7 @@
   floor, which later events (folds, force steps) can amplify; its largest value after the horizon
   is reported (``after_horizon_max_rad``; ``after_horizon_where_stressed_max_rad`` where the law
   uses more than half of a bound), since the guarantee holds only up to it.
-* ``demand_star``: the smallest reference demand (``blf_gym.lookahead.reference_demand``) found
+* ``demand_star``: the smallest reference demand (``blf_gym.envs.lookahead.reference_demand``) found
   within ``horizon`` before a sample where the law alone, on 80 training-suite draws, used more
   than half of a bound's width (normalized margin below 0.5, the barrier filter's m1), leaving out
   the second after a force step (which no look-ahead foresees).
@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from blf_gym.io import atomic_write_json
-from blf_gym.lookahead import reference_demand
-from blf_gym.metrics import provenance
-from blf_gym.scenarios import sample_suite
-from blf_gym.simulate import simulate_batch
+from blf_gym.results.io import atomic_write_json
+from blf_gym.envs.lookahead import reference_demand
+from blf_gym.results.metrics import provenance
+from blf_gym.envs.scenarios import sample_suite
+from blf_gym.kernel.simulate import simulate_batch
 
 OUT = Path(__file__).with_name("derive.json")
 DRAWS, PAIRS, DELTA, M1 = 80, 16, 0.01, 0.5

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 
 HERE = Path(__file__).resolve().parent
 ROWS = (("law, paper gains", "proposed"), ("law, tuned", "proposed_tuned"), ("PPC", "ppc"), ("floor", "floor"),

@@ -28,7 +28,7 @@ from run import VARIANTS  # noqa: E402  (the variants' order and descriptions)
 
 def _law(suite_seeds: int, level: int) -> dict[str, list[float]]:
     from agents.sweep import law_levels
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     path = HERE / "law.json"
     if path.is_file():
@@ -48,7 +48,7 @@ def _in_bounds(point: dict, groups, duration: float) -> float:
 
 
 def summarize_runs() -> dict:
-    from agents.evaluate import CURVE_GROUPS
+    from blf_gym.envs.protocol import CURVE_GROUPS
     from agents.sweep import score_point
 
     out = {"variants": []}
@@ -120,7 +120,7 @@ def plot(summary: dict, path: Path) -> None:
 
 
 def main() -> int:
-    from blf_gym.io import atomic_write_json
+    from blf_gym.results.io import atomic_write_json
 
     summary = summarize_runs()
     if not summary["variants"]:

@@ -18,8 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from blf_gym.io import atomic_write_json
-from blf_gym.metrics import score_vs_law
+from blf_gym.results.io import atomic_write_json
+from blf_gym.results.metrics import score_vs_law
 
 ROOT = Path(__file__).resolve().parents[2]
 SHIP = (("res_proposed_tuned", "proposed_tuned", "ppo_residual_tuned"), ("res_ppc", "ppc", "ppo_residual_ppc"))

@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from blf_gym.blocks import Observer, nominal_acceleration
+from blf_gym.plugins.blocks import Observer, nominal_acceleration
 
 __all__ = ["ESO4Gains", "eso4"]
 

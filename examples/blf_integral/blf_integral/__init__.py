@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from blf_gym.blocks import Controller, coriolis_times, gravity, mass_times
+from blf_gym.plugins.blocks import Controller, coriolis_times, gravity, mass_times
 
 __all__ = ["IntegralGains", "proposed_integral"]
 

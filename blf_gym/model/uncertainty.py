@@ -1,16 +1,16 @@
 """The plant's uncertainties: joint friction, the input dead-zone and the external-force schedule.
 
 Compiled scalar functions used inside the closed-loop kernel; their parameters come from the
-packed plant vector (:meth:`blf_gym.params.Scenario.pack_plant`).
+packed plant vector (:meth:`blf_gym.model.params.Scenario.pack_plant`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from . import vmath
+from blf_gym.jit import vmath
 
 __all__ = ["friction", "friction_exponent", "friction_from", "dead_zone", "force_active", "dead_zone_array"]
 

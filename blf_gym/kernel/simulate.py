@@ -32,19 +32,19 @@ from typing import Sequence
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.core import cgutils
 from numba.core.imputils import impl_ret_borrowed
 from numba.extending import intrinsic
 from numba.np.arrayobj import populate_array
 
-from . import vmath
-from .bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
-from .blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
+from blf_gym.jit import vmath
+from blf_gym.model.bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
+from blf_gym.plugins.blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
                      nominal_terms_into, work_length)
-from .registry import make_controller, make_observer
-from .dynamics import (
+from blf_gym.plugins.registry import make_controller, make_observer
+from blf_gym.model.dynamics import (
     WORK_PER_LINK,
     abs_trig_into,
     ldl_factor_into,
@@ -55,16 +55,17 @@ from .dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from .params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, check_int, plant_length, usable_cores
-from .reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
-from .views import fixed
-from .status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
+from blf_gym.model.params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, check_int, plant_length, usable_cores
+from blf_gym.kernel.reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
+from blf_gym.jit.views import fixed
+from blf_gym.kernel.status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
                      ST_DIVERGED, ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_STEPS, ST_VIOL_SAMPLES,
                      ST_VIOL_STEPS)
-from .reference import reference_angle, reference_from, reference_into
-from .uncertainty import dead_zone, force_active, friction, friction_exponent, friction_from
+from blf_gym.model.reference import reference_angle, reference_from, reference_into
+from blf_gym.model.uncertainty import dead_zone, force_active, friction, friction_exponent, friction_from
 
 __all__ = [
+    "Batch",
     "CHANNELS",
     "ClosedLoop",
     "Trajectory",
@@ -78,8 +79,12 @@ CHANNELS = (
     "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated",
     "x3", "x3_hat", "x2_hat", "x1_hat", "y",
 )
-_C = {name: i for i, name in enumerate(CHANNELS)}
 N_CHANNELS = len(CHANNELS)
+# Each channel's row in a record, from CHANNELS (the kernel freezes these into its code).
+(_CH_T, _CH_Q, _CH_QD, _CH_QREF, _CH_QDREF, _CH_E1, _CH_KA, _CH_KB, _CH_U, _CH_HU, _CH_ULAW, _CH_SAT, _CH_X3,
+ _CH_X3HAT, _CH_X2HAT, _CH_X1HAT, _CH_Y) = (CHANNELS.index(c) for c in (
+    "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated", "x3", "x3_hat",
+    "x2_hat", "x1_hat", "y"))
 
 # Offsets after the arm block (2n+1) in the packed plant vector, read from its one declaration.
 _T = {name: i for i, name in enumerate(PLANT_TAIL)}
@@ -181,23 +186,23 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3, o1, o2, o3):
     ``o3`` are the offsets of x1_hat, x2_hat, x3_hat in the state, -1 for one the observer lacks."""
     n = y.shape[0]
     for i in range(n):
-        r[0, i] = t
-        r[1, i] = x[i]
-        r[2, i] = x[n + i]
-        r[3, i] = ref[i]
-        r[4, i] = ref[n + i]
-        r[5, i] = x[i] - ref[i]
-        r[6, i] = bnd[KA]
-        r[7, i] = bnd[KB]
-        r[8, i] = u[i]
-        r[9, i] = hu[i]
-        r[10, i] = ulaw[i]
-        r[11, i] = satf[i]
-        r[12, i] = x3[i]
-        r[13, i] = x[o3 + i] if o3 >= 0 else np.nan
-        r[14, i] = x[o2 + i] if o2 >= 0 else np.nan
-        r[15, i] = x[o1 + i] if o1 >= 0 else np.nan
-        r[16, i] = y[i]
+        r[_CH_T, i] = t
+        r[_CH_Q, i] = x[i]
+        r[_CH_QD, i] = x[n + i]
+        r[_CH_QREF, i] = ref[i]
+        r[_CH_QDREF, i] = ref[n + i]
+        r[_CH_E1, i] = x[i] - ref[i]
+        r[_CH_KA, i] = bnd[KA]
+        r[_CH_KB, i] = bnd[KB]
+        r[_CH_U, i] = u[i]
+        r[_CH_HU, i] = hu[i]
+        r[_CH_ULAW, i] = ulaw[i]
+        r[_CH_SAT, i] = satf[i]
+        r[_CH_X3, i] = x3[i]
+        r[_CH_X3HAT, i] = x[o3 + i] if o3 >= 0 else np.nan
+        r[_CH_X2HAT, i] = x[o2 + i] if o2 >= 0 else np.nan
+        r[_CH_X1HAT, i] = x[o1 + i] if o1 >= 0 else np.nan
+        r[_CH_Y, i] = y[i]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -271,7 +276,7 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
 @njit(cache=True, error_model="numpy", inline="always")
 def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, ang, sn, cs, ex, ev, n,
                 one_lane):
-    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.vmath`:
+    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.jit.vmath`:
     sin and cos, acos, atan2, exp), for one lane: the reference and the bounds at ``ts``, the
     measurement y, the cos and sin of the plant's and the nominal model's link angles, and the
     friction torques. It runs in a loop of its own, so that the rest of the stage, in
@@ -370,6 +375,8 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
 _N_FLAGS = 9
 
 
+# long: the kernel's time loop is one compiled function (numba inlines nothing across a call to a
+# generated closure's globals, and a split would put the lanes' state through argument tuples)
 def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
                     noise, terminate, plain, rec, nrec, status, last, scratch, sums, unstable_run, taken):
     """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``, the arms
@@ -391,7 +398,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
     the noise sample held over the step, so without noise the law and the observer see the angles at
     every stage like Simulink's continuous blocks. ``x`` = [q, qd, observer states, controller
     states]. ``_ctrl_output``, ``_obs_rhs`` and ``_ctrl_update`` are the generated glue of
-    :func:`blf_gym.blocks.connect`, bound with the sizes ``_N``, ``_NO``, ``_NC`` by
+    :func:`blf_gym.plugins.blocks.connect`, bound with the sizes ``_N``, ``_NO``, ``_NC`` by
     :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter`` turns the residual
     (with ``plain``, a runtime flag, the agent's torque minus u_law) into ``fout[:n]``. The nominal
     model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when the nominal
@@ -682,7 +689,7 @@ def _sample_template(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, stat
     """Per lane, at step ``j``'s start time (state x, after its first stage evaluation): the
     violation and saturation bookkeeping (:func:`_step_bookkeeping`), the filter's monitors; at a
     1 ms sample also the true lumped disturbance, the reward's sums
-    (:func:`blf_gym.reward.accumulate_sample`) and the record; then the last applied signals."""
+    (:func:`blf_gym.kernel.reward.accumulate_sample`) and the record; then the last applied signals."""
     n = _N  # noqa: F821
     nx = _NX  # noqa: F821
     LN = _LN  # noqa: F821
@@ -834,9 +841,9 @@ inlined into it."""
 
 def kernel_digest(conn: Connection) -> str:
     """The 10-hex-digit digest in a kernel's name: the sources of this module's import closure
-    (:func:`blf_gym.sources.digest`: the templates, every block they inline, every packed layout's
+    (:func:`blf_gym.jit.sources.digest`: the templates, every block they inline, every packed layout's
     declaration, found by following the imports, not from a list) and the connection's own digest
-    (the plug-ins' closures and the generated glue, :func:`blf_gym.blocks.connect`). An edit to any
+    (the plug-ins' closures and the generated glue, :func:`blf_gym.plugins.blocks.connect`). An edit to any
     of those files, a comment included, builds a new kernel; an edit to a module the kernel does not
     import (the env, agents/, docs/) does not."""
     return hashlib.sha1((sources.digest(__name__) + conn.digest).encode()).hexdigest()[:10]
@@ -1027,9 +1034,9 @@ def _compile_error(conn: Connection, exc: Exception) -> str:
 
     c, o = conn.controller, conn.observer
     arr = _t.float64[::1]
-    for fn, params, owner in ((c.output, c._out_params, f"{c.owner}.output"),
-                              (c.update, c._upd_params, f"{c.owner}.update"),
-                              (o.rhs, o._rhs_params, f"{o.owner}.rhs")):
+    for fn, params, owner in ((c.output, c.output_params, f"{c.owner}.output"),
+                              (c.update, c.update_params, f"{c.owner}.update"),
+                              (o.rhs, o.rhs_params, f"{o.owner}.rhs")):
         if fn is None:
             continue
         layouts = o.param_layout if fn is o.rhs else c.param_layout
@@ -1093,7 +1100,7 @@ class Trajectory:
 
     def save_npz(self, path: str | os.PathLike) -> None:
         """Write the signals and metadata atomically to ``path`` (.npz)."""
-        from .io import atomic_write_npz
+        from blf_gym.results.io import atomic_write_npz
 
         meta = dict(scenario=self.scenario, controller=self.controller, dt=self.dt,
                     diverged=self.diverged, diverged_at=self.diverged_at)
@@ -1102,7 +1109,11 @@ class Trajectory:
 
 
 @dataclass
-class _Batch:
+class Batch:
+    """The arms' packed per-arm parameters as the kernel reads them, one row per arm: the plant,
+    the controller's nominal model, the reference, the bounds and the law's, observer's and filter's
+    gains. Written by :meth:`ClosedLoop.reset`; :attr:`ClosedLoop.batch` gives it to readers."""
+
     plant: np.ndarray
     nominal: np.ndarray
     ref: np.ndarray
@@ -1194,7 +1205,7 @@ class ClosedLoop:
         """Per arm, the consecutive integration steps the instability check has failed so far
         (carried across calls, reset with the arm)."""
         self.last = np.zeros((self.N, N_LAST * n + c.n_out + c.n_fout))
-        """Per arm, the columns of blf_gym.status.LAST_COLUMNS (n each), then the controller's
+        """Per arm, the columns of blf_gym.kernel.status.LAST_COLUMNS (n each), then the controller's
         outputs in its declared order (see :meth:`outputs`)."""
         self._block = _layout(c)["_total"][0] * self.lanes
         self._scratch = np.zeros((-(-self.N // self.lanes), self._block))
@@ -1226,6 +1237,12 @@ class ClosedLoop:
         last = self.last.copy()
         return {name: last[:, base + off : base + off + m] for name, (off, m) in self.connection.out_offsets.items()}
 
+    @property
+    def batch(self) -> Batch:
+        """The arms' packed parameters as the kernel reads them (:class:`Batch`), set by
+        :meth:`set_scenarios`; the env's observation filler reads the reference and bounds here."""
+        return self._batch
+
     def set_scenarios(self, scenarios: Sequence[Scenario], which: Sequence[int] | None = None,
                       start_steps: Sequence[int] | None = None) -> None:
         """Install scenarios (all, or the arms listed in ``which``) and reset those arms.
@@ -1245,7 +1262,7 @@ class ClosedLoop:
             raise ValueError("one start step per reset arm is required")
         if not hasattr(self, "_batch"):
             n = self.n
-            self._batch = _Batch(
+            self._batch = Batch(
                 plant=np.zeros((self.N, plant_length(n))),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
                 ref=np.zeros((self.N, len(REFERENCE_PACK))),
@@ -1268,7 +1285,7 @@ class ClosedLoop:
             self._reset_arm(i, sc, int(k0))
 
     def _reset_arm(self, i: int, sc: Scenario, k0: int = 0) -> None:
-        from .reference import joint_reference
+        from blf_gym.model.reference import joint_reference
 
         n = self.n
         q_d0, qd_d0, _ = joint_reference(k0 * self.dt, sc)
@@ -1479,7 +1496,7 @@ def simulate(
     (30000, 3)
     """
     if isinstance(scenario, str):
-        from .params import preset
+        from blf_gym.model.params import preset
 
         scenario = preset(scenario)
     traj = simulate_batch([scenario], controller, observer, noise_seeds=[noise_seed], threads=1)[0]

@@ -24,7 +24,7 @@ from typing import Any, Iterable, NamedTuple, Sequence
 
 import numpy as np
 
-from .io import atomic_write_json, atomic_write_text
+from blf_gym.results.io import atomic_write_json, atomic_write_text
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -54,7 +54,7 @@ PER_EPISODE = ("per_episode_rmse_deg", "per_episode_score", "per_episode_violati
 PROVENANCE_FIELDS = ("suite", "suite_seeds", "scenario_kwargs", "env_kwargs", "train_seed", "noise_seeds",
                      "observer", "law_reused", "registered_policy", "policy_report", "level")
 """Optional per-record fields saying what produced it (the CSV carries them as JSON text).
-``level`` is the difficulty level of the episodes (blf_gym.levels; absent in files written before
+``level`` is the difficulty level of the episodes (blf_gym.envs.levels; absent in files written before
 the levels, which were all at level 3, the full benchmark).
 ``registered_policy`` names a ``blf_gym.policies`` entry point scored like an agent, and
 ``policy_report`` is that policy's own account of the run (the NMPC's solve times and fallbacks,
@@ -145,7 +145,7 @@ class EpisodeStats(NamedTuple):
 
 
 def episode_stats(traj: Any) -> EpisodeStats:
-    """A :class:`blf_gym.simulate.Trajectory` (or a dict of its signals) as :class:`EpisodeStats`;
+    """A :class:`blf_gym.kernel.simulate.Trajectory` (or a dict of its signals) as :class:`EpisodeStats`;
     an ``EpisodeStats`` is returned as it is."""
     if isinstance(traj, EpisodeStats):
         return traj
@@ -185,7 +185,7 @@ def summarize(
 ) -> dict[str, Any]:
     """Pool episodes into one results record.
 
-    ``trajectories`` are :class:`blf_gym.simulate.Trajectory` objects (or dicts of their signals),
+    ``trajectories`` are :class:`blf_gym.kernel.simulate.Trajectory` objects (or dicts of their signals),
     or their :class:`EpisodeStats` (:func:`episode_stats`; the record is the same, to the bit, so
     a caller can reduce each episode as it finishes and keep no signals).
     RMSE pools the squared error of all 1 ms samples of all episodes, per joint; an episode fails
@@ -205,76 +205,29 @@ def summarize(
     """
     if kind not in KINDS:
         raise ValueError(f"kind must be one of {KINDS}, got {kind!r}")
-    sq_sum = None
-    count = 0
-    viol = None
-    exc = None
-    margin = None
-    u_sq = None
-    u_peak = None
-    sat = None
-    first: float | None = None
-    fails = 0
-    diverged = False
-    per_episode_rmse: list[float] = []
-    eps: list[tuple[list[float] | None, int, bool]] = []
-    episodes = 0
-    n_joints = 3
+    pool = _Pool()
     for traj in trajectories:
-        st = episode_stats(traj)
-        eps.append((st.rmse_deg, st.violating_samples, st.failed))
-        episodes += 1
-        n_joints = st.n_joints
-        if st.sq is None:
-            diverged = True
-            fails += 1
-            continue
-        if sq_sum is None:
-            n = st.sq.shape[0]
-            sq_sum = np.zeros(n)
-            viol = np.zeros(n, dtype=np.int64)
-            exc = np.zeros(n)
-            margin = np.full(n, np.inf)
-            u_sq = np.zeros(n)
-            u_peak = np.zeros(n)
-            sat = np.zeros(n)
-        sq_sum += st.sq
-        count += st.samples
-        viol += st.viol
-        exc = np.maximum(exc, st.excursion)
-        margin = np.minimum(margin, st.margin)
-        u_sq += st.u_sq
-        u_peak = np.maximum(u_peak, st.u_peak)
-        sat += st.saturated
-        per_episode_rmse.append(float(np.mean(st.rmse_deg)))
-        diverged |= st.diverged
-        if st.first_violation_s is not None:
-            first = st.first_violation_s if first is None else min(first, st.first_violation_s)
-        fails += st.failed
-    if episodes == 0:
+        pool.add(episode_stats(traj))
+    if pool.episodes == 0:
         raise ValueError("summarize needs at least one trajectory")
+    eps = pool.eps
     extra: dict[str, Any] = {
         "per_episode_rmse_deg": [e[0] for e in eps],
         "per_episode_violations": [e[1] for e in eps],
         "per_episode_failed": [e[2] for e in eps],
         "per_episode_score": None, "score_vs_law": None, "certificate_broken": None, "law_failure_rate": None,
     }
-    pooled = np.degrees(np.sqrt(sq_sum / count)).tolist() if sq_sum is not None else None
+    pooled = pool.rmse_deg()
     if law is not None:
-        law_st = [episode_stats(t) for t in law]
-        if len(law_st) != len(eps):
-            raise ValueError(f"summarize: {len(law_st)} law trajectories for {len(eps)} episodes")
+        law_st = _yardstick_stats(law, len(eps), "law")
         extra["per_episode_score"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, law_st)]
         extra["law_failure_rate"] = sum(q.failed for q in law_st) / len(law_st)
         extra["certificate_broken"] = sum(p[2] and not q.failed for p, q in zip(eps, law_st)) / len(eps)
-        pooled_law = _pooled_rmse(law_st)
-        extra["score_vs_law"] = score_vs_law(pooled, pooled_law)
+        extra["score_vs_law"] = score_vs_law(pooled, _pooled_rmse(law_st))
     extra.update(reference=reference_name if reference is not None else None, score_vs_reference=None,
                  per_episode_score_vs_reference=None)
     if reference is not None:
-        ref_st = [episode_stats(t) for t in reference]
-        if len(ref_st) != len(eps):
-            raise ValueError(f"summarize: {len(ref_st)} reference trajectories for {len(eps)} episodes")
+        ref_st = _yardstick_stats(reference, len(eps), "reference")
         extra["per_episode_score_vs_reference"] = [score_vs_law(p[0], q.rmse_deg) for p, q in zip(eps, ref_st)]
         extra["score_vs_reference"] = score_vs_law(pooled, _pooled_rmse(ref_st))
     if provenance:
@@ -282,31 +235,82 @@ def summarize(
         if unknown:
             raise ValueError(f"summarize: unknown provenance field(s) {sorted(unknown)}; known: {PROVENANCE_FIELDS}")
         extra.update(provenance)
-    if sq_sum is None:
-        return {"policy": policy, "kind": kind, "scenario": scenario, "episodes": episodes, "dt": dt,
-                **{k: [None] * n_joints for k in PER_JOINT}, "first_violation_s": None,
-                "failure_rate": 1.0, "rmse_cvar_deg": None, "diverged": True, "wall_s": wall_s, **extra}
-    return {
-        "policy": policy,
-        "kind": kind,
-        "scenario": scenario,
-        "episodes": episodes,
-        "dt": dt,
-        "rmse_deg": np.degrees(np.sqrt(sq_sum / count)).tolist(),
-        "violations": viol.tolist(),
-        "violation_fraction": (viol / count).tolist(),
-        "max_excursion_deg": np.degrees(exc).tolist(),
-        "min_margin_deg": np.degrees(margin).tolist(),
-        "first_violation_s": first,
-        "failure_rate": fails / episodes,
-        "rmse_cvar_deg": cvar_upper(per_episode_rmse, 0.5) if per_episode_rmse else None,
-        "torque_rms": np.sqrt(u_sq / count).tolist(),
-        "torque_peak": u_peak.tolist(),
-        "saturated_fraction": (sat / count).tolist(),
-        "diverged": diverged,
-        "wall_s": wall_s,
-        **extra,
-    }
+    head = {"policy": policy, "kind": kind, "scenario": scenario, "episodes": pool.episodes, "dt": dt}
+    return {**head, **pool.fields(), "wall_s": wall_s, **extra}
+
+
+def _yardstick_stats(trajectories: Sequence[Any], episodes: int, what: str) -> list[EpisodeStats]:
+    """The EpisodeStats of a yardstick's episodes (the law's, a reference's), one per episode."""
+    stats = [episode_stats(t) for t in trajectories]
+    if len(stats) != episodes:
+        raise ValueError(f"summarize: {len(stats)} {what} trajectories for {episodes} episodes")
+    return stats
+
+
+class _Pool:
+    """:func:`summarize`'s running sums over a record's episodes, per joint, in episode order."""
+
+    def __init__(self) -> None:
+        self.sq_sum: np.ndarray | None = None
+        self.count = 0
+        self.first: float | None = None
+        self.fails = 0
+        self.diverged = False
+        self.per_episode_rmse: list[float] = []
+        self.eps: list[tuple[list[float] | None, int, bool]] = []
+        self.episodes = 0
+        self.n_joints = 0
+
+    def add(self, st: EpisodeStats) -> None:
+        self.eps.append((st.rmse_deg, st.violating_samples, st.failed))
+        self.episodes += 1
+        self.n_joints = st.n_joints
+        if st.sq is None:
+            self.diverged = True
+            self.fails += 1
+            return
+        if self.sq_sum is None:
+            n = st.sq.shape[0]
+            self.sq_sum, self.viol, self.exc = np.zeros(n), np.zeros(n, dtype=np.int64), np.zeros(n)
+            self.margin, self.u_sq, self.u_peak, self.sat = np.full(n, np.inf), np.zeros(n), np.zeros(n), np.zeros(n)
+        self.sq_sum += st.sq
+        self.count += st.samples
+        self.viol += st.viol
+        self.exc = np.maximum(self.exc, st.excursion)
+        self.margin = np.minimum(self.margin, st.margin)
+        self.u_sq += st.u_sq
+        self.u_peak = np.maximum(self.u_peak, st.u_peak)
+        self.sat += st.saturated
+        self.per_episode_rmse.append(float(np.mean(st.rmse_deg)))
+        self.diverged |= st.diverged
+        if st.first_violation_s is not None:
+            self.first = st.first_violation_s if self.first is None else min(self.first, st.first_violation_s)
+        self.fails += st.failed
+
+    def rmse_deg(self) -> list[float] | None:
+        """Per joint, the RMSE of every sample of every episode that did not diverge (None: all did)."""
+        return np.degrees(np.sqrt(self.sq_sum / self.count)).tolist() if self.sq_sum is not None else None
+
+    def fields(self) -> dict[str, Any]:
+        """The record's pooled fields (every per-joint field None when every episode diverged)."""
+        if self.sq_sum is None:
+            return {**{k: [None] * self.n_joints for k in PER_JOINT}, "first_violation_s": None,
+                    "failure_rate": 1.0, "rmse_cvar_deg": None, "diverged": True}
+        count = self.count
+        return {
+            "rmse_deg": self.rmse_deg(),
+            "violations": self.viol.tolist(),
+            "violation_fraction": (self.viol / count).tolist(),
+            "max_excursion_deg": np.degrees(self.exc).tolist(),
+            "min_margin_deg": np.degrees(self.margin).tolist(),
+            "first_violation_s": self.first,
+            "failure_rate": self.fails / self.episodes,
+            "rmse_cvar_deg": cvar_upper(self.per_episode_rmse, 0.5) if self.per_episode_rmse else None,
+            "torque_rms": np.sqrt(self.u_sq / count).tolist(),
+            "torque_peak": self.u_peak.tolist(),
+            "saturated_fraction": (self.sat / count).tolist(),
+            "diverged": self.diverged,
+        }
 
 
 def _pooled_rmse(stats: Sequence[Any]) -> list[float] | None:

@@ -17,11 +17,11 @@ from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from .bounds import KA, KB
-from .params import check_bool, check_real
-from .status import ST_DIVERGED, ST_VIOL_SAMPLES, ST_VIOL_STEPS
+from blf_gym.model.bounds import KA, KB
+from blf_gym.model.params import check_bool, check_real
+from blf_gym.kernel.status import ST_DIVERGED, ST_VIOL_SAMPLES, ST_VIOL_STEPS
 
 __all__ = ["TERMS", "RewardTerm", "SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample",
            "step_outputs", "score_step"]
@@ -63,7 +63,7 @@ class RewardTerm(NamedTuple):
     """A numba function ``(x, y, ref, bnd, u, cout, umax, n) -> float``: the term at one 1 ms sample,
     summed over the joints. ``x`` the state [q, qd, observer states, controller states] (true
     angles first), ``y`` the measured angles, ``ref`` [q_d, qd_d, qdd_d], ``bnd`` [k_a, k_a', k_a'',
-    k_b, k_b', k_b''] (:data:`blf_gym.bounds.BOUND_SIGNALS`), ``u`` the applied torque, ``cout``
+    k_b, k_b', k_b''] (:data:`blf_gym.model.bounds.BOUND_SIGNALS`), ``u`` the applied torque, ``cout``
     the controller's outputs (u_law first), ``umax`` the torque limit."""
     weight: float
     """Default weight (>= 0); 0 keeps existing rewards."""
@@ -115,7 +115,7 @@ def _generate_accumulate():
               for k, t in enumerate(TERMS)]
     lines += ["    sums[SUM_SAMPLES] += 1.0", "    return bad", ""]
     scope = {"errors_into": errors_into, "SUM_SAMPLES": SUM_SAMPLES, **{f"term_{k}": t.sample for k, t in enumerate(TERMS)}}
-    exec(compile("\n".join(lines), "<blf_gym.reward: accumulate_sample, generated from TERMS>", "exec"), scope)  # noqa: S102
+    exec(compile("\n".join(lines), "<blf_gym.kernel.reward: accumulate_sample, generated from TERMS>", "exec"), scope)  # noqa: S102
     fn = scope["accumulate_sample"]
     fn.__module__ = __name__
     fn.__doc__ = """Add one 1 ms sample to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per

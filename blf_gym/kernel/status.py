@@ -1,7 +1,7 @@
 """Per-arm layouts of one kernel call's integer status and of the last applied signals, declared once.
 
-The kernel (:mod:`blf_gym.simulate`), the env (:mod:`blf_gym.envcore`) and the reward
-(:mod:`blf_gym.reward`) read their offsets from here.
+The kernel (:mod:`blf_gym.kernel.simulate`), the env (:mod:`blf_gym.envs.envcore`) and the reward
+(:mod:`blf_gym.kernel.reward`) read their offsets from here.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ beyond the limit, 2 numerically unstable, 3 a violation that ended the episode w
 was unstable), violating integration steps, the first one (global
 index, -1 if none), steps with a saturated torque, violating 1 ms samples; with a residual filter,
 the integration steps where its condition did not hold and where an assumption of its guarantee
-failed (its ``breach`` and ``assumptions`` monitors, blf_gym.blocks.ResidualFilter)."""
+failed (its ``breach`` and ``assumptions`` monitors, blf_gym.plugins.blocks.ResidualFilter)."""
 (ST_STEPS, ST_DIVERGED, ST_VIOL_STEPS, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_FILTER_BREACHES,
  ST_ASSUMPTION_FAILURES) = (STATUS_COLUMNS.index(c) for c in STATUS_COLUMNS)
 N_STATUS = len(STATUS_COLUMNS)

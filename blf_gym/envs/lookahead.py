@@ -43,9 +43,9 @@ from typing import Any
 
 import numpy as np
 
-from .bounds import error_bounds
-from .params import ArmParams, DeadZoneParams, FrictionParams, Scenario
-from .reference import joint_reference
+from blf_gym.model.bounds import error_bounds
+from blf_gym.model.params import ArmParams, DeadZoneParams, FrictionParams, Scenario
+from blf_gym.model.reference import joint_reference
 
 __all__ = ["LookaheadParams", "LOOKAHEAD_KEYS", "reference_demand", "lookahead_gate", "split_lookahead",
            "design_scenario", "margin_gate", "predicted_gates"]
@@ -175,7 +175,7 @@ def predicted_gates(scenarios: "list[Scenario]", controller: Any, observer: Any,
     """The predictive rule's schedule for each scenario (:func:`design_scenario`, the law alone, then
     :func:`margin_gate` at ``params.predict``), the law's runs batched in one kernel call. A run that
     diverges hands back everything from its start."""
-    from .simulate import simulate_batch  # the kernel: imported when a predictive rule is asked for
+    from blf_gym.kernel.simulate import simulate_batch  # the kernel: imported when a predictive rule is asked for
 
     runs = simulate_batch([design_scenario(sc) for sc in scenarios], controller, observer)
     out = []

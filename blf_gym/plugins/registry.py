@@ -1,7 +1,7 @@
 """Where controllers and observers come from: the registry over the entry-point groups.
 
-``blf_gym`` never imports a controller. Plug-ins are :class:`~blf_gym.blocks.Controller` and
-:class:`~blf_gym.blocks.Observer` blocks (the protocol is in :mod:`blf_gym.blocks` and
+``blf_gym`` never imports a controller. Plug-ins are :class:`~blf_gym.plugins.blocks.Controller` and
+:class:`~blf_gym.plugins.blocks.Observer` blocks (the protocol is in :mod:`blf_gym.plugins.blocks` and
 docs/extending.md). Named ones are found through the entry-point groups ``blf_gym.controllers``
 and ``blf_gym.observers``: each entry point is a factory whose keyword arguments override the
 plug-in's parameters. The ``baselines`` package registers ``bc``, ``lesobc``, ``proposed`` and
@@ -20,7 +20,7 @@ from __future__ import annotations
 from importlib.metadata import entry_points
 from typing import Any
 
-from .blocks import (
+from blf_gym.plugins.blocks import (
     NO_CONTROLLER,
     Controller,
     Observer,
@@ -77,17 +77,17 @@ def _factory(group: str, kind: str, spec: Any, names: Any, tail: str) -> Any:
 
 def _load(group: str, kind: str, cls: type, spec: Any, kwargs: dict[str, Any]) -> Any:
     names = available_controllers if cls is Controller else available_observers
-    factory = _factory(group, kind, spec, names, f"(or a blf_gym.blocks.{cls.__name__} object). If the paper's "
+    factory = _factory(group, kind, spec, names, f"(or a blf_gym.plugins.blocks.{cls.__name__} object). If the paper's "
                        "are missing, install the project (pip install -e .) so its entry points are registered.")
     obj = factory(**kwargs)
     if not isinstance(obj, cls):
         raise ValueError(f"entry point {spec!r} of {group} returned {type(obj).__name__}, not a "
-                         f"blf_gym.blocks.{cls.__name__}")
+                         f"blf_gym.plugins.blocks.{cls.__name__}")
     return obj
 
 
 def make_controller(spec: "str | Controller", **kwargs: Any) -> Controller:
-    """A :class:`~blf_gym.blocks.Controller` from a registered name (``bc``, ``lesobc``,
+    """A :class:`~blf_gym.plugins.blocks.Controller` from a registered name (``bc``, ``lesobc``,
     ``proposed``, ``none``, or an installed plug-in's) or an existing object. ``kwargs`` go to the
     plug-in's factory (e.g. gains)."""
     if isinstance(spec, Controller):
@@ -102,7 +102,7 @@ def make_controller(spec: "str | Controller", **kwargs: Any) -> Controller:
 
 
 def make_observer(spec: "str | Observer" = "leso", **kwargs: Any) -> Observer:
-    """An :class:`~blf_gym.blocks.Observer` from a registered name (``leso``, or an installed
+    """An :class:`~blf_gym.plugins.blocks.Observer` from a registered name (``leso``, or an installed
     plug-in's) or an existing object."""
     if isinstance(spec, Observer):
         if kwargs:

@@ -25,8 +25,8 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Callable
 
-from .params import ArmParams, DeadZoneParams, Scenario, check_int
-from .scenarios import widen_bounds
+from blf_gym.model.params import ArmParams, DeadZoneParams, Scenario, check_int
+from blf_gym.envs.scenarios import widen_bounds
 
 __all__ = ["DEFAULT_LEVEL", "LEVELS", "WIDE_BOUNDS", "Level", "apply_level", "check_level", "level_name"]
 
@@ -34,7 +34,7 @@ WIDE_BOUNDS = 10.0
 """The funnel's widening at levels 0 and 1: the paper's floors of 0.02 and 0.04 rad (1.1 and 2.3
 degrees) become 0.2 and 0.4 rad (11 and 23 degrees), the width of the loose training funnel in
 which plain PPO first tracked the 0.1 Hz preset's first 10 s (the issue's audit), and within
-``blf_gym.envcore.MAX_BOUND_SCALE`` (15)."""
+``blf_gym.envs.envcore.MAX_BOUND_SCALE`` (15)."""
 
 
 def _widen(sc: Scenario) -> Scenario:

@@ -9,9 +9,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from .envcore import (ARGUMENTS, CORE_BOUND_SCALE, INFO_KEYS, EnvCore, check_env_kwargs, observation_layout,
+from blf_gym.envs.envcore import (ARGUMENTS, CORE_BOUND_SCALE, INFO_KEYS, EnvCore, check_env_kwargs, observation_layout,
                       warn_if_oversubscribed)
-from .params import Scenario, check_int
+from blf_gym.model.params import Scenario, check_int
 
 __all__ = ["PlanarBLFEnv", "MAX_FPS", "make_env", "make_residual_env", "check_residual_controller"]
 
@@ -30,7 +30,7 @@ def _rows(header: tuple[str, ...], rows: list[tuple[Any, ...]], indent: str = ""
 
 def observation_table(privileged: bool = True, indent: str = "") -> str:
     """The default observation's entries (index, name, unit, box), a Markdown table made from
-    :data:`blf_gym.observation.OBSERVATION` for the 3-link arm."""
+    :data:`blf_gym.envs.observation.OBSERVATION` for the 3-link arm."""
     rows = [(i, name, unit, f"{lo:g}", f"{hi:g}") for i, (name, unit, lo, hi)
             in enumerate(observation_layout(3, privileged))]
     return _rows(("index", "observation", "unit", "min", "max"), rows, indent)
@@ -42,7 +42,7 @@ def _default_text(v: Any) -> str:
 
 def arguments_table(indent: str = "") -> str:
     """The env's keyword arguments (default, unit, accepted values, meaning), a Markdown table
-    made from :data:`blf_gym.envcore.ARGUMENTS` and :class:`~blf_gym.envcore.EnvCore`'s defaults."""
+    made from :data:`blf_gym.envs.envcore.ARGUMENTS` and :class:`~blf_gym.envs.envcore.EnvCore`'s defaults."""
     d = _defaults()
     rows = [(f"`{a.name}`", f"`{_default_text(d[a.name])}`", a.unit, a.accepted, a.meaning) for a in ARGUMENTS]
     return _rows(("argument", "default", "unit", "accepted", "meaning"), rows, indent)
@@ -50,15 +50,15 @@ def arguments_table(indent: str = "") -> str:
 
 def info_table(indent: str = "") -> str:
     """The env's ``info`` keys (unit, when present, meaning), a Markdown table made from
-    :data:`blf_gym.envcore.INFO_KEYS`."""
+    :data:`blf_gym.envs.envcore.INFO_KEYS`."""
     rows = [(f"`{k.name}`", k.unit, k.when, k.meaning) for k in INFO_KEYS]
     return _rows(("key", "unit", "present", "meaning"), rows, indent)
 
 
 def reward_terms_table(indent: str = "") -> str:
     """The shaped reward's per-sample terms (default weight, unit, meaning), a Markdown table made
-    from :data:`blf_gym.reward.TERMS`."""
-    from .reward import TERMS
+    from :data:`blf_gym.kernel.reward.TERMS`."""
+    from blf_gym.kernel.reward import TERMS
 
     rows = [(f"`{t.name}`", f"{t.weight:g}", t.unit, t.meaning.replace("``", "`")) for t in TERMS]
     return _rows(("term", "default weight", "unit", "per 1 ms sample, summed over the joints"), rows, indent)
@@ -79,22 +79,22 @@ def _weights_text(w: Any) -> str:
 
 def _reward_text() -> str:
     """The docstring's reward section, from the code's own defaults (so it cannot drift)."""
-    from .reward import PHI_CAP, SCORE_REWARD, RewardWeights
+    from blf_gym.kernel.reward import PHI_CAP, SCORE_REWARD, RewardWeights
 
     d = _defaults()
     default = "the score reward" if d["reward_weights"] is None else repr(d["reward_weights"])
     first = textwrap.fill(
-        f"The default (``reward_weights=None``) is {default}, :data:`blf_gym.reward.SCORE_REWARD`: "
+        f"The default (``reward_weights=None``) is {default}, :data:`blf_gym.kernel.reward.SCORE_REWARD`: "
         f"{_weights_text(SCORE_REWARD)}. Each step pays the change of a potential, the running log-ratio of "
         "the reference law's squared error to the policy's on the same scenario, so a full episode returns "
         "``log(score_vs_law)`` (0 for the law itself, > 0 for better tracking), whatever the control period; "
         f"the potential stays within +-{PHI_CAP:g}, and a violation costs {SCORE_REWARD.violation:g}, so "
         "every violating episode returns less than any other.", 96, initial_indent="    ", subsequent_indent="    ")
     second = textwrap.fill(
-        "``reward_weights={}`` (or a :class:`blf_gym.reward.RewardWeights` / dict of its fields) gives the "
+        "``reward_weights={}`` (or a :class:`blf_gym.kernel.reward.RewardWeights` / dict of its fields) gives the "
         f"shaped reward, with field defaults {_weights_text(RewardWeights())}::", 96,
         initial_indent="    ", subsequent_indent="    ")
-    from .reward import TERMS
+    from blf_gym.kernel.reward import TERMS
 
     formula = " - ".join(["r = alive", *(f"{t.name} * E_{t.name}" for t in TERMS)])
     terms = "\n".join(textwrap.fill(f"E_{t.name}: the mean over the step's 1 ms samples and the joints of {t.meaning}.",
@@ -111,13 +111,13 @@ def _reward_text() -> str:
 {terms}
 
     The env refuses weights under which ending an episode by a violation could pay (see
-    :class:`~blf_gym.reward.RewardWeights`). The terms are returned in ``info["reward_info"]``,
+    :class:`~blf_gym.kernel.reward.RewardWeights`). The terms are returned in ``info["reward_info"]``,
     by name (``alive``, one per term, ``score`` and ``violation``)."""
 
 
 def _truncation_text() -> str:
     """The docstring's truncation line, from the code's defaults."""
-    from .params import preset
+    from blf_gym.model.params import preset
 
     d = _defaults()
     dur = preset(d["scenario"]).sim.duration
@@ -213,7 +213,7 @@ class PlanarBLFEnv(gym.Env):
 
     def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
         """Keyword arguments are listed under *Arguments* above; their defaults live in
-        :class:`blf_gym.envcore.EnvCore`."""
+        :class:`blf_gym.envs.envcore.EnvCore`."""
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"PlanarBLFEnv: render_mode must be one of {self.metadata['render_modes']} or None, "
                              f"got {render_mode!r}")
@@ -268,10 +268,10 @@ class PlanarBLFEnv(gym.Env):
         ``seed`` (an integer >= 0) seeds the env's generator, which draws the episode's scenario
         (on a suite) and its measurement noise; the same seed gives the same episode to the bit.
         ``options`` varies this episode only: a mapping of the knobs of
-        :data:`blf_gym.scenarios.VARIATIONS` (e.g. ``{"force": 60.0}``), each checked
+        :data:`blf_gym.envs.scenarios.VARIATIONS` (e.g. ``{"force": 60.0}``), each checked
         against its safe range (ValueError naming it otherwise). ``info`` holds the step's keys
-        (:data:`blf_gym.envcore.INFO_KEYS`) and ``"scenario"``, the episode's
-        ``Scenario`` (``blf_gym.params``)."""
+        (:data:`blf_gym.envs.envcore.INFO_KEYS`) and ``"scenario"``, the episode's
+        ``Scenario`` (``blf_gym.model.params``)."""
         # checked before anything changes; a numpy integer seed is an integer
         seed = check_int("PlanarBLFEnv.reset:", "seed", seed, lo=0, none_ok=True)
         options = self.core.check_options(options)
@@ -316,12 +316,12 @@ class PlanarBLFEnv(gym.Env):
         return obs[0], float(rew[0]), bool(term[0]), bool(trunc[0]), info
 
     def trajectory(self):
-        """The current episode's signals on the 1 ms grid (a :class:`blf_gym.simulate.Trajectory`,
+        """The current episode's signals on the 1 ms grid (a :class:`blf_gym.kernel.simulate.Trajectory`,
         the same type ``simulate()`` returns); needs ``record=True``."""
         return self.core.trajectory(0)
 
     def _draw(self) -> np.ndarray:
-        from .render import ArmRenderer
+        from blf_gym.envs.render import ArmRenderer
 
         if self._renderer is None:
             self._renderer = ArmRenderer(self.scenario, human=self.render_mode == "human")

@@ -16,7 +16,7 @@ arm up until the run diverges, which is reported the same way.
 The **randomized suite** (``"randomized"``) draws each knob uniformly from its suite range
 (:data:`SUITE_RANGES`) with a caller-supplied ``numpy.random.Generator``; the controller's nominal
 model stays the paper's, and that mismatch is the point. Agents train on it; its evaluation
-episodes use seeds from 10,000 (``agents.evaluate.EVAL_SEED_OFFSET``).
+episodes use seeds from 10,000 (:data:`blf_gym.envs.protocol.EVAL_SEED_OFFSET`).
 
 The **stress suite** (``"stress"``) is held out: no training, tuning, seed choice, early stopping
 or sweep objective may read it. Every episode first draws every knob like the training suite, then
@@ -56,7 +56,8 @@ from typing import Any, Callable, Mapping
 
 import numpy as np
 
-from .params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
+from blf_gym.envs.protocol import CERTIFICATE_SEED_OFFSET, HELD_OUT_SUITES, STRESS_SEED_OFFSET, SUITES
+from blf_gym.model.params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
 
 __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
            "STRESS_SEED_OFFSET", "CERTIFICATE_SEED_OFFSET", "CERTIFICATE_KINDS", "HELD_OUT_SUITES", "UNITS", "VARIATION_LABEL_MAX", "apply_variations", "check_variations", "variation_label", "varied_name", "sample_suite",
@@ -67,7 +68,7 @@ __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_
 class Knob:
     """One scenario knob, declared once as a row of :data:`KNOBS`.
 
-    ``target`` names the :class:`~blf_gym.params.Scenario` fields it sets, as paths:
+    ``target`` names the :class:`~blf_gym.model.params.Scenario` fields it sets, as paths:
     ``"reference.frequency"``, ``"force.wrench[0]"`` (one entry of a tuple), ``"arm.masses[-1]"``,
     ``"initial_error"``. With ``scale`` the value multiplies the base scenario's value of each
     target; with ``per_joint`` it is one value per joint (a single number is given to all). The
@@ -196,18 +197,6 @@ STRESS_RANGES: dict[str, tuple[float, float]] = {k.name: k.stress for k in KNOBS
 UNITS: dict[str, str] = {k.name: k.unit for k in KNOBS}
 """Unit of each knob of :data:`VARIATIONS` (empty: dimensionless)."""
 
-STRESS_SEED_OFFSET = 20_000
-"""The stress suite's evaluation episodes use scenario seeds from here (the training suite's
-held-out ones start at 10,000)."""
-
-CERTIFICATE_SEED_OFFSET = 30_000
-"""The certificate suite's episodes use scenario seeds from here."""
-
-SUITES = ("randomized", "stress", "certificate")
-
-HELD_OUT_SUITES = ("stress", "certificate")
-"""Suites no training, tuning, seed choice, early stopping or sweep objective may read."""
-
 CERTIFICATE_KINDS = (("early force", 0.4), ("corner", 0.3), ("uniform", 0.3))
 """The certificate suite's episode kinds and their probabilities (see the module docstring)."""
 
@@ -225,8 +214,8 @@ def _knob_table() -> str:
 
 __doc__ = __doc__.replace("{knob_table}", _knob_table())
 
-_OUTSIDE_HINT = (" (its safe range, see blf_gym.scenarios; to run outside it, build the Scenario "
-                 "with blf_gym.scenarios.apply_variations(scenario, {...}, strict=False) and pass it "
+_OUTSIDE_HINT = (" (its safe range, see blf_gym.envs.scenarios; to run outside it, build the Scenario "
+                 "with blf_gym.envs.scenarios.apply_variations(scenario, {...}, strict=False) and pass it "
                  "as scenario=)")
 
 
@@ -466,4 +455,4 @@ def resolve_scenario(spec: "str | Scenario") -> tuple[Scenario, str | None]:
     if isinstance(spec, str) and spec in PRESETS:
         return preset(spec), None
     raise ValueError(f"unknown scenario {spec!r}: scenario must be one of "
-                     f"{sorted(PRESETS) + list(SUITES)} or a blf_gym.params.Scenario")
+                     f"{sorted(PRESETS) + list(SUITES)} or a blf_gym.model.params.Scenario")

@@ -67,21 +67,20 @@ import math
 import os
 import re
 import sys
-import warnings
 from dataclasses import dataclass, field
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from .dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
+from blf_gym.model.dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
                        mass_matrix_into)
-from .io import cache_dir
-from .bounds import BOUND_SIGNALS
-from .params import ArmParams
-from .views import fixed
-from .reference import REFERENCE_SIGNALS
+from blf_gym.results.io import cache_dir
+from blf_gym.model.bounds import BOUND_SIGNALS
+from blf_gym.model.params import ArmParams
+from blf_gym.jit.views import fixed
+from blf_gym.model.reference import REFERENCE_SIGNALS
 
 __all__ = [
     "BASE_SIGNALS", "Block", "PLANT", "Controller", "Observer", "ResidualFilter", "Connection", "connect", "mass_times",
@@ -127,7 +126,7 @@ def nominal_model_into(y, arm, model, work):
 def nominal_terms_into(arm, model, work):
     """The rest of :func:`nominal_model_into` once the model's cos and sin entries are in place:
     M, G and the LDL^T factor (the closed loop computes the trigonometry apart, see
-    :mod:`blf_gym.simulate`)."""
+    :mod:`blf_gym.kernel.simulate`)."""
     n = (arm.shape[0] - 1) // 2
     nn = n * n
     trig = model[nn + n : nn + 3 * n]
@@ -261,7 +260,7 @@ def _pack_params(owner: str, params: Any) -> tuple[np.ndarray, dict[str, tuple[i
         v = getattr(params, f.name)
         if f.name == "nominal":
             if not isinstance(v, ArmParams):
-                raise ValueError(f"{owner}: params.nominal must be a blf_gym.params.ArmParams, got {v!r}")
+                raise ValueError(f"{owner}: params.nominal must be a blf_gym.model.params.ArmParams, got {v!r}")
             continue
         if "unit" not in f.metadata:
             raise ValueError(f"{owner}: parameter field {f.name!r} of {type(params).__name__} carries no unit; "
@@ -321,7 +320,7 @@ class Block:
 
 
 def _plant_block() -> Block:
-    from .params import ArmParams, DeadZoneParams, ForceParams, FrictionParams
+    from blf_gym.model.params import ArmParams, DeadZoneParams, ForceParams, FrictionParams
 
     return Block("planar_arm", {"q": "n", "qd": "n"}, (ArmParams, FrictionParams, DeadZoneParams, ForceParams),
                  inputs=("u",), outputs=("y", "qd_true"),
@@ -345,7 +344,7 @@ class _PluginBase:
             nominal = getattr(params, "nominal", None) if params is not None else None
             nominal = nominal if nominal is not None else ArmParams()
         if not isinstance(nominal, ArmParams):
-            raise ValueError(f"{owner}: nominal must be a blf_gym.params.ArmParams, got {nominal!r}")
+            raise ValueError(f"{owner}: nominal must be a blf_gym.model.params.ArmParams, got {nominal!r}")
         object.__setattr__(self, "gains", gains)
         object.__setattr__(self, "param_layout", layout)
         object.__setattr__(self, "nominal", nominal)
@@ -414,13 +413,14 @@ class Controller(_PluginBase):
             raise ValueError(f"{o} has an update function but declares no states")
         if self.initial_state is not None and not callable(self.initial_state):
             raise ValueError(f"{o}: initial_state must be callable (y0, n) -> state, got {self.initial_state!r}")
-        object.__setattr__(self, "_out_params", _fn_params(f"{o}.output", self.output))
-        object.__setattr__(self, "_upd_params", _fn_params(f"{o}.update", self.update) if self.update else [])
+        # public: the glue and the kernel's specialisation read which signals each function takes
+        object.__setattr__(self, "output_params", _fn_params(f"{o}.output", self.output))
+        object.__setattr__(self, "update_params", _fn_params(f"{o}.update", self.update) if self.update else [])
 
     @property
     def full_state(self) -> bool:
         """True if the law reads the true state (BC reads the velocity); results say so."""
-        return bool({"qd_true", "q_true"} & {*self._out_params, *self._upd_params})
+        return bool({"qd_true", "q_true"} & {*self.output_params, *self.update_params})
 
     def make_filter(self, spec: "str | ResidualFilter | None") -> "ResidualFilter | None":
         """The residual filter ``spec`` names, or the object itself. A name is one of :attr:`filters`,
@@ -431,10 +431,10 @@ class Controller(_PluginBase):
         name, kwargs = parse_filter_spec(spec)
         if name not in self.filters:
             raise ValueError(f"residual_filter must be None or one of the filters shipped with {self.owner}, "
-                             f"{sorted(self.filters)} (or a blf_gym.blocks.ResidualFilter), got {spec!r}")
+                             f"{sorted(self.filters)} (or a blf_gym.plugins.blocks.ResidualFilter), got {spec!r}")
         f = self.filters[name](**kwargs)
         if not isinstance(f, ResidualFilter):
-            raise ValueError(f"{self.owner}: filter {name!r} did not produce a blf_gym.blocks.ResidualFilter")
+            raise ValueError(f"{self.owner}: filter {name!r} did not produce a blf_gym.plugins.blocks.ResidualFilter")
         return f
 
     def initial(self, y0: np.ndarray) -> np.ndarray:
@@ -461,16 +461,9 @@ class Observer(_PluginBase):
     """(y0 (n,), n) -> the observer's state at t = 0; default: y0 in the first state part of size n,
     zeros elsewhere."""
     nominal: ArmParams | None = None
-    pairs_with: tuple[str, ...] = ()
-    """Deprecated and ignored (giving it warns): an observer serves any controller whose signals it
-    provides, which :func:`connect` checks, naming the signal, when the two are connected."""
     kind = "observer"
 
     def __post_init__(self) -> None:
-        if self.pairs_with:
-            warnings.warn(f"Observer {self.name!r}: pairs_with is deprecated and ignored; blf_gym.blocks.connect "
-                          f"checks that the observer provides every signal the controller reads",
-                          DeprecationWarning, stacklevel=3)
         self._init_common(self.name, self.params, self.nominal)
         o = self.owner
         states = _parts(o, "state", self.states)
@@ -482,7 +475,7 @@ class Observer(_PluginBase):
             raise ValueError(f"{o}: the names {sorted(clash)} are both states and parameters")
         if self.initial_state is not None and not callable(self.initial_state):
             raise ValueError(f"{o}: initial_state must be callable (y0, n) -> state, got {self.initial_state!r}")
-        object.__setattr__(self, "_rhs_params", _fn_params(f"{o}.rhs", self.rhs))
+        object.__setattr__(self, "rhs_params", _fn_params(f"{o}.rhs", self.rhs))
 
     def initial(self, y0: np.ndarray) -> np.ndarray:
         n = y0.shape[0]
@@ -527,7 +520,7 @@ class ResidualFilter(_PluginBase):
             if mon in outs and outs[mon] != 1:
                 raise ValueError(f"{o}: the monitor output {mon!r} must have size 1")
         object.__setattr__(self, "outputs", outs)
-        object.__setattr__(self, "_apply_params", _fn_params(f"{o}.apply", self.apply))
+        object.__setattr__(self, "apply_params", _fn_params(f"{o}.apply", self.apply))
 
 
 
@@ -658,7 +651,7 @@ def _call(role: str, fn_name: str, params: list[str], ctrl: Controller, obs: Obs
 
 def glue_digest(src: str, functions: Sequence[Any], path: tuple[str, ...] | None = None) -> str:
     """The 12-hex-digit digest in a glue module's name: the generated source, each plug-in function's
-    name and the import closure of the module that defines it (:func:`blf_gym.sources.function_digest`:
+    name and the import closure of the module that defines it (:func:`blf_gym.jit.sources.function_digest`:
     what it calls in other files, such as the CBF filter's use of ``baselines.filters``, included),
     and this module's closure. ``path``: resolve the modules in a copy on disk (the tests)."""
     h = hashlib.sha1(src.encode())
@@ -711,14 +704,14 @@ def connect(controller: Controller, observer: Observer, n: int,
     """Check that every signal each function reads is provided, generate and compile the glue, and
     run each function once on trial inputs; ValueError naming the plug-in and the problem.
     ``residual_filter`` goes between the residual and the actuator (in plain mode the kernel hands it
-    the agent's whole torque minus the law's, a runtime flag of :class:`blf_gym.simulate.ClosedLoop`)."""
+    the agent's whole torque minus the law's, a runtime flag of :class:`blf_gym.kernel.simulate.ClosedLoop`)."""
     c, o, f = controller, observer, residual_filter
     if not isinstance(c, Controller):
-        raise ValueError(f"connect: controller must be a blf_gym.blocks.Controller, got {c!r}")
+        raise ValueError(f"connect: controller must be a blf_gym.plugins.blocks.Controller, got {c!r}")
     if not isinstance(o, Observer):
-        raise ValueError(f"connect: observer must be a blf_gym.blocks.Observer, got {o!r}")
+        raise ValueError(f"connect: observer must be a blf_gym.plugins.blocks.Observer, got {o!r}")
     if not (f is None or isinstance(f, ResidualFilter)):
-        raise ValueError(f"connect: residual_filter must be None or a blf_gym.blocks.ResidualFilter, got {f!r}")
+        raise ValueError(f"connect: residual_filter must be None or a blf_gym.plugins.blocks.ResidualFilter, got {f!r}")
     if c.nominal.n_links != n or o.nominal.n_links != n:
         raise ValueError(f"{c.owner} and {o.owner} must model an arm of {n} links like the plant")
     if not np.array_equal(c.nominal.pack(), o.nominal.pack()):
@@ -730,14 +723,14 @@ def connect(controller: Controller, observer: Observer, n: int,
            fkey)
     if key in _CONNECTIONS:
         return _CONNECTIONS[key]
-    src = "# generated by blf_gym.blocks.connect: the glue between the kernel and the plug-ins\n"
-    src += f"def ctrl_output({_GLUE_ARGS}):\n" + _call("ctrl_out", "_c_output", c._out_params, c, o, f, n,
+    src = "# generated by blf_gym.plugins.blocks.connect: the glue between the kernel and the plug-ins\n"
+    src += f"def ctrl_output({_GLUE_ARGS}):\n" + _call("ctrl_out", "_c_output", c.output_params, c, o, f, n,
                                                        f"{c.owner}.output")
     src += f"\ndef res_filter({_GLUE_ARGS}):\n"
-    src += _call("filter", "_f_apply", f._apply_params, c, o, f, n, f"{f.owner}.apply") if f else "    pass\n"
-    src += f"\ndef obs_rhs({_GLUE_ARGS}):\n" + _call("obs", "_o_rhs", o._rhs_params, c, o, f, n, f"{o.owner}.rhs")
+    src += _call("filter", "_f_apply", f.apply_params, c, o, f, n, f"{f.owner}.apply") if f else "    pass\n"
+    src += f"\ndef obs_rhs({_GLUE_ARGS}):\n" + _call("obs", "_o_rhs", o.rhs_params, c, o, f, n, f"{o.owner}.rhs")
     src += f"\ndef ctrl_update({_GLUE_ARGS}):\n"
-    src += (_call("ctrl_upd", "_c_update", c._upd_params, c, o, f, n, f"{c.owner}.update") if c.update
+    src += (_call("ctrl_upd", "_c_update", c.update_params, c, o, f, n, f"{c.owner}.update") if c.update
             else "    pass\n")
     digest = glue_digest(src, (c.output, c.update, o.rhs, f.apply if f else None))
     fname = "" if f is None else f"__{f.name}"
@@ -786,9 +779,9 @@ def _py_fixed(w, start, length):
 def _trial(conn: Connection) -> None:
     """Run the three functions once in Python on plausible inputs (the paper's start), so that a wrong
     output shape, an unwritten output or an exception is reported against the plug-in."""
-    from .bounds import bounds_into
-    from .params import preset
-    from .reference import joint_reference
+    from blf_gym.model.bounds import bounds_into
+    from blf_gym.model.params import preset
+    from blf_gym.model.reference import joint_reference
 
     c, o, n = conn.controller, conn.observer, conn.n
     sc = preset("paper-0.1hz")

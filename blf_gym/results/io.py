@@ -39,7 +39,7 @@ MANIFEST_VERSION = 1
 def cache_dir() -> Path:
     """blf-gym's cache folder: ``BLF_GYM_CACHE_DIR`` if set, else ``blf-gym`` in the user's cache
     (``XDG_CACHE_HOME`` or ``~/.cache``). It holds the generated glue of the compiled closed loops
-    (:mod:`blf_gym.blocks`), blf-eval's law results (``agents.lawcache``, ``law/``) and the NMPC's
+    (:mod:`blf_gym.plugins.blocks`), blf-eval's law results (``agents.lawcache``, ``law/``) and the NMPC's
     compiled solver (``baselines.mpc``, ``nmpc/``); deleting it is safe."""
     env = os.environ.get("BLF_GYM_CACHE_DIR")
     if env:

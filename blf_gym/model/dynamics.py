@@ -21,7 +21,7 @@ For 3 links this equals the paper's Appendix A once its typos are fixed (see doc
 The ``*_into`` functions are compiled (numba, cached to disk) and write into caller-provided
 arrays so the closed-loop kernel allocates nothing per step; matrices are flat row-major
 (n*n) arrays, which keeps the compiled code free of reshapes. ``arm`` is the packed layout of
-:meth:`blf_gym.params.ArmParams.pack`: ``[l_1..l_n, m_1..m_n, g]``. The functions without
+:meth:`blf_gym.model.params.ArmParams.pack`: ``[l_1..l_n, m_1..m_n, g]``. The functions without
 ``_into`` are NumPy-facing conveniences built on the same compiled code.
 """
 
@@ -29,11 +29,11 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from . import vmath
+from blf_gym.jit import vmath
 
-from .params import ArmParams
+from blf_gym.model.params import ArmParams
 
 __all__ = [
     "WORK_PER_LINK",

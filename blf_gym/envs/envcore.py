@@ -1,5 +1,5 @@
-"""The batched environment logic shared by :class:`~blf_gym.env.PlanarBLFEnv` (one arm) and
-:class:`~blf_gym.vector.PlanarBLFVectorEnv` (N arms): scenario handling, the agent step over the
+"""The batched environment logic shared by :class:`~blf_gym.envs.env.PlanarBLFEnv` (one arm) and
+:class:`~blf_gym.envs.vector.PlanarBLFVectorEnv` (N arms): scenario handling, the agent step over the
 compiled closed loop, observations, rewards and info. There is no other copy of this logic.
 """
 
@@ -10,24 +10,24 @@ from typing import Any, Mapping, NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from .bounds import BOUND_LEN, KA, KB
-from .blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
-from .registry import available_controllers, available_observers, make_controller, make_observer
-from .reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
+from blf_gym.model.bounds import BOUND_LEN, KA, KB
+from blf_gym.plugins.blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
+from blf_gym.plugins.registry import available_controllers, available_observers, make_controller, make_observer
+from blf_gym.kernel.reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
                      STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
-from .params import (DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, check_reals,
+from blf_gym.model.params import (DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, check_reals,
                      usable_cores)
-from .observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
+from blf_gym.envs.observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
                           plan_row)
-from .levels import DEFAULT_LEVEL, apply_level, check_level
-from .lookahead import design_scenario, lookahead_gate, predicted_gates, split_lookahead
-from .scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
+from blf_gym.envs.levels import DEFAULT_LEVEL, apply_level, check_level
+from blf_gym.envs.lookahead import design_scenario, lookahead_gate, predicted_gates, split_lookahead
+from blf_gym.envs.scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
                         widen_bounds)
-from .simulate import CHANNELS, ClosedLoop, divergence_message
-from .status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
+from blf_gym.kernel.simulate import CHANNELS, ClosedLoop, divergence_message
+from blf_gym.kernel.status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
                      ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
 __all__ = ["RewardWeights", "EnvCore", "ARGUMENTS", "INFO_KEYS", "Argument", "InfoKey", "MAX_ARMS", "MAX_BOUND_SCALE", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
@@ -86,11 +86,11 @@ ARGUMENTS: tuple[Argument, ...] = (
              'info["cost"] and info["violating_samples"] and runs on'),
     Argument("angle_noise_std", "rad", ">= 0 or None (the scenario's)",
              "Gaussian noise on the measured angles (observer, law and observation)"),
-    Argument("duration", "s", "> 0, at most blf_gym.params.MAX_DURATION (3600), or None (the scenario's, 30)",
+    Argument("duration", "s", "> 0, at most blf_gym.model.params.MAX_DURATION (3600), or None (the scenario's, 30)",
              "the episode's simulated time; a whole number of control periods"),
     Argument("max_torque", "N m", "> 0 or None (the scenario's, 150)",
              "the actuator's limit; plain mode's action scale unless action_scale says otherwise"),
-    Argument("action_scale", "N m", 'None (max_torque), "law" (blf_gym.envcore.law_action_scale), a number or one '
+    Argument("action_scale", "N m", 'None (max_torque), "law" (blf_gym.envs.envcore.law_action_scale), a number or one '
              "per joint, each > 0 and at most max_torque",
              "plain mode: the torque per joint at action 1 (a learner's exploration in the torques the task "
              "needs); the actuator's limit stays max_torque. Refused in residual mode (residual_scale)"),
@@ -99,29 +99,29 @@ ARGUMENTS: tuple[Argument, ...] = (
              "the arm's generator), rounded to whole control periods, the arm on the reference; needs a reward "
              "without the law's reference (reward_weights with score 0 and relative off). Scoring always starts at 0"),
     Argument("dt", "s", ">= 1e-7 or None (the scenario's, 1e-4)", "the ODE3 integration step"),
-    Argument("variations", "-", "a dict of blf_gym.scenarios.VARIATIONS",
+    Argument("variations", "-", "a dict of blf_gym.envs.scenarios.VARIATIONS",
              "changes to the scenario (with \"randomized\", they override the suite's draw); reset(options=...) "
              "takes the same per episode"),
     Argument("reward_weights", "-", "None, a RewardWeights or a dict of its fields",
              "None: the score reward; a dict: the shaped reward with those weights"),
-    Argument("observation_extras", "-", "names of optional entries of blf_gym.observation.OBSERVATION",
+    Argument("observation_extras", "-", "names of optional entries of blf_gym.envs.observation.OBSERVATION",
              "optional observation entries appended after the others, in the order named"),
     Argument("residual_filter", "-", 'None, "barrier", "cbf" or a registered filter of the law, optionally with '
              'parameters ("barrier:handback=0.0033"); in residual mode also lookahead=SECONDS[,demand=D or ,predict=M]',
              "a safety filter between the action and the actuator (residual mode: on the residual; plain mode: on "
-             "the torque minus the proposed law's); lookahead: the look-ahead hand-back (blf_gym.lookahead)"),
+             "the torque minus the proposed law's); lookahead: the look-ahead hand-back (blf_gym.envs.lookahead)"),
     Argument("bound_scale", "-", "1 to MAX_BOUND_SCALE (15)",
              "a training curriculum's factor on the funnel's width; the benchmark is 1. Also settable between "
              "episodes as env.unwrapped.bound_scale"),
-    Argument("level", "-", "0 to 3 (blf_gym.levels.LEVELS)",
+    Argument("level", "-", "0 to 3 (blf_gym.envs.levels.LEVELS)",
              "difficulty level, applied to every scenario the env draws or resets to from its own scenario: "
              "0 the nominal plant in 10x wider bounds, 1 the scenario's plant in 10x wider bounds, 2 without the "
              "external force, 3 the full benchmark (docs/levels.md)"),
-    Argument("threads", "-", "1 to the cores the process may use (blf_gym.params.usable_cores), or None (1 for "
+    Argument("threads", "-", "1 to the cores the process may use (blf_gym.model.params.usable_cores), or None (1 for "
              "the single env, half the cores for the vector env)",
              "numba threads the arms are split over"),
     Argument("record", "-", "True or False", "keep the episode's 1 ms signals for env.unwrapped.trajectory()"),
-    Argument("record_channels", "-", "names of blf_gym.simulate.CHANNELS, or None (all)",
+    Argument("record_channels", "-", "names of blf_gym.kernel.simulate.CHANNELS, or None (all)",
              "the signals kept with record; fewer keep less memory"),
 )
 """The env's keyword arguments, declared once (the docs' table is made from it; a test checks
@@ -163,7 +163,7 @@ INFO_KEYS: tuple[InfoKey, ...] = (
     InfoKey("filter_outputs", "-", "step, with residual_filter",
             "the filter's outputs by name (the filtered residual, theta, the budget, its monitors)"),
     InfoKey("lookahead_handback", "-", "step, with lookahead in residual_filter",
-            "True when the look-ahead hand-back withheld the residual over this step (blf_gym.lookahead)"),
+            "True when the look-ahead hand-back withheld the residual over this step (blf_gym.envs.lookahead)"),
     InfoKey("qd", "rad/s", "reset and step, with privileged=True", "the true joint velocities"),
     InfoKey("diverged_message", "-", "the step that diverged", "what diverged and when"),
     InfoKey("episode_metrics", "-", "the episode's last step",
@@ -468,13 +468,13 @@ def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observat
     weights, a filter) are of a kind it accepts; ValueError naming the argument otherwise."""
     if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
         raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
-                         f"blf_gym.params.Scenario, got {scenario!r}")
+                         f"blf_gym.model.params.Scenario, got {scenario!r}")
     if not (controller is None or isinstance(controller, (str, Controller))):
         raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
-                         f"blf_gym.blocks.Controller, got {controller!r}")
+                         f"blf_gym.plugins.blocks.Controller, got {controller!r}")
     if not isinstance(observer, (str, Observer)):
         raise ValueError(f"{o} observer must be one of {available_observers()} or a "
-                         f"blf_gym.blocks.Observer, got {observer!r}")
+                         f"blf_gym.plugins.blocks.Observer, got {observer!r}")
     optional = optional_observations()
     if (isinstance(observation_extras, (str, bytes)) or not isinstance(observation_extras, Sequence)
             or not all(isinstance(g, str) for g in observation_extras)):
@@ -488,7 +488,7 @@ def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observat
         raise ValueError(f"{o} variations must be None or a mapping (dict) from names in "
                          f"{list(VARIATIONS)} to numbers, got {variations!r}")
     if not (reward_weights is None or isinstance(reward_weights, (RewardWeights, Mapping))):
-        raise ValueError(f"{o} reward_weights must be None, a blf_gym.reward.RewardWeights or a mapping "
+        raise ValueError(f"{o} reward_weights must be None, a blf_gym.kernel.reward.RewardWeights or a mapping "
                          f"(dict) of its fields {[f.name for f in fields(RewardWeights)]}, got {reward_weights!r}")
     if isinstance(reward_weights, Mapping):
         names = [f.name for f in fields(RewardWeights)]
@@ -498,15 +498,15 @@ def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observat
                              f"accepted: {names}")
     if not (residual_filter is None or isinstance(residual_filter, (str, ResidualFilter))):
         raise ValueError(f"{o} residual_filter must be None, the name of a filter shipped with the law "
-                         f"(the proposed law's 'barrier' or 'cbf') or a blf_gym.blocks.ResidualFilter, got "
+                         f"(the proposed law's 'barrier' or 'cbf') or a blf_gym.plugins.blocks.ResidualFilter, got "
                          f"{residual_filter!r}")
 
 
 class EnvCore:
     """N arms of the PlanarBLF task stepped together by one compiled kernel call.
 
-    This is the one place the environment's defaults live; :class:`~blf_gym.env.PlanarBLFEnv`
-    and :class:`~blf_gym.vector.PlanarBLFVectorEnv` pass their keyword arguments through.
+    This is the one place the environment's defaults live; :class:`~blf_gym.envs.env.PlanarBLFEnv`
+    and :class:`~blf_gym.envs.vector.PlanarBLFVectorEnv` pass their keyword arguments through.
     """
 
     def __init__(
@@ -541,7 +541,7 @@ class EnvCore:
         self.single = check_bool("EnvCore:", "single", single)
         o = self.owner = "PlanarBLFEnv:" if self.single else "PlanarBLFVectorEnv:"
         self.num_envs = check_int(o, "num_envs", num_envs, lo=1, hi=MAX_ARMS,
-                                  hint=" (blf_gym.envcore.MAX_ARMS; each arm keeps per-episode arrays)")
+                                  hint=" (blf_gym.envs.envcore.MAX_ARMS; each arm keeps per-episode arrays)")
         self.record = check_bool(o, "record", record)
         self.record_channels = _record_channels(o, record_channels)
         if self.single and self.num_envs != 1:
@@ -554,7 +554,7 @@ class EnvCore:
         terminate_on_violation = check_bool(o, "terminate_on_violation", terminate_on_violation)
         angle_noise_std = check_real(o, "angle_noise_std", angle_noise_std, lo=0.0, unit="rad", none_ok=True)
         duration = check_real(o, "duration", duration, lo=0.0, hi=MAX_DURATION, lo_open=True, unit="s", none_ok=True,
-                              hint=" (blf_gym.params.MAX_DURATION: an episode's signals and the score reward's "
+                              hint=" (blf_gym.model.params.MAX_DURATION: an episode's signals and the score reward's "
                                    "reference are kept per 1 ms sample)")
         max_torque = check_real(o, "max_torque", max_torque, lo=0.0, lo_open=True, unit="N m", none_ok=True)
         dt = check_real(o, "dt", dt, lo=DT_MIN, unit="s", none_ok=True,
@@ -654,7 +654,7 @@ class EnvCore:
             raise ValueError(
                 f"{o} num_envs={self.num_envs} arms of {self.sim.duration:g} s episodes would need "
                 f"{per_arm * self.num_envs / 2 ** 30:.1f} GiB for the reward's reference to the law "
-                f"(blf_gym.envcore.MAX_REFERENCE_BYTES is {MAX_REFERENCE_BYTES / 2 ** 30:g} GiB); use fewer arms, "
+                f"(blf_gym.envs.envcore.MAX_REFERENCE_BYTES is {MAX_REFERENCE_BYTES / 2 ** 30:g} GiB); use fewer arms, "
                 "shorter episodes, or reward_weights={} (the shaped reward, which needs none)")
 
     def _build_loop(self, residual_filter: "str | ResidualFilter | None", threads: int | None) -> None:
@@ -695,7 +695,7 @@ class EnvCore:
 
     def _set_observation(self, observation_extras: Sequence[str]) -> None:
         """The observation's layout, its box and the compiled filler's plan: each row of
-        :data:`~blf_gym.observation.OBSERVATION` in use, its source resolved against the blocks."""
+        :data:`~blf_gym.envs.observation.OBSERVATION` in use, its source resolved against the blocks."""
         self.observation_extras = tuple(observation_extras)
         n, conn = self.n, self.loop.connection
         plan, scale, at = [], [], 0
@@ -866,7 +866,7 @@ class EnvCore:
 
     def lookahead_gates(self, scenarios: Sequence[Scenario]) -> list[np.ndarray]:
         """Which control periods of each scenario the look-ahead hand-back gives to the law alone
-        (blf_gym.lookahead: the demand rule, or the predictive rule's law runs batched over the
+        (blf_gym.envs.lookahead: the demand rule, or the predictive rule's law runs batched over the
         scenarios not seen before), indexed by the period's start time over the control period;
         kept for the last 64 (or twice the arms) distinct scenarios as the rule sees them (design_scenario)."""
         keys = [replace(design_scenario(sc), name="") for sc in scenarios]
@@ -1025,8 +1025,25 @@ class EnvCore:
         ``skip`` (a boolean mask) marks arms whose results the caller discards because it resets
         them next (the vector env's next-step autoreset): they draw no noise, so each arm's random
         stream stays that of a single env."""
-        a = self.check_actions(actions)
-        N = self.num_envs
+        residual, gated, status, obs_noise = self._advance(self.check_actions(actions), skip)
+        self.steps += 1
+        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
+        t_end = self.loop.time
+        res, flags = self._step_rewards(status, t_end)
+        rewards = res[R_REWARD]
+        terminated = res[R_TERMINATED] > 0.0
+        truncated = res[R_TRUNCATED] > 0.0
+        info = self._step_info(status, res, flags, residual, gated, terminated, truncated, t_end)
+        self.done[:] = (terminated | truncated) if flags else False
+        which = None if skip is None or not skip.any() else [int(i) for i in np.flatnonzero(~skip)]
+        obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
+        return obs, rewards, terminated, truncated, info
+
+    def _advance(self, a: np.ndarray, skip: np.ndarray | None
+                 ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """Run the kernel over one control period with the checked actions ``a``: (the residual
+        torque applied, the look-ahead's hand-back mask or None, the kernel's status, the
+        observation noise drawn for the step's end)."""
         residual = self._torque(a)
         gated = None
         if self.lookahead is not None:
@@ -1043,24 +1060,31 @@ class EnvCore:
             if self._rec_all is not None:
                 self._pick_channels(self._rec_all, rec.slab())
             rec.commit(nrec)
-        self.steps += 1
-        _accumulate_episode(status, self.loop.sums, self.loop.ksteps, self._ep_int, self._ep_f)
-        res = np.empty((len(STEP_ROWS), N))
-        t_end = self.loop.time
+        return residual, gated, status, obs_noise
+
+    def _step_rewards(self, status: np.ndarray, t_end: np.ndarray) -> tuple[np.ndarray, int]:
+        """The step's reward rows (:data:`STEP_ROWS`, one column per arm) and the kernel's flags
+        (bit 1: an arm's episode ended, bit 2: one diverged), the score term added in place."""
+        res = np.empty((len(STEP_ROWS), self.num_envs))
         if self.weights.law_baseline:
             k = np.minimum(self.steps - 1, self.max_episode_steps - 1)
             base = self._law_steps[self._arms, k]
         else:
             base = self._no_base
         flags = step_outputs(status, self.loop.sums, self._law_e2, base, self._wvec, t_end, self._durations, res)
-        rewards = res[R_REWARD]
         if self._score_w > 0:
             if self._law_partial and (self._ep_f[:, EP_SAMPLES] > self._law_h).any():
                 self._catch_up_law()
             score_step(self._ep_f[:, EP_SAMPLES], self._ep_f[:, EP_E2_JOINT:], self._law_cum, self._phi,
-                       self._score_w, rewards, self._score_term)
-        terminated = res[R_TERMINATED] > 0.0
-        truncated = res[R_TRUNCATED] > 0.0
+                       self._score_w, res[R_REWARD], self._score_term)
+        return res, flags
+
+    def _step_info(self, status: np.ndarray, res: np.ndarray, flags: int, residual: np.ndarray,
+                   gated: np.ndarray | None, terminated: np.ndarray, truncated: np.ndarray,
+                   t_end: np.ndarray) -> dict[str, Any]:
+        """The step's ``info``: per-arm arrays (views of a fresh copy of the last signals), the
+        reasons an episode ended and, on its last step, its metrics."""
+        N = self.num_envs
         reason = np.empty(N, dtype=object)  # filled with None
         trunc_reason = np.empty(N, dtype=object)
         if flags:
@@ -1073,7 +1097,6 @@ class EnvCore:
                     trunc_reason[i] = "time_limit"
         last = self.loop.last.copy()  # the info entries below are views of this fresh copy
         sl = self._last_slices
-        x3 = last[:, sl[2]]
         info: dict[str, Any] = {
             "cost": res[R_VIOLATED],
             "violating_samples": status[:, ST_VIOL_SAMPLES],
@@ -1081,7 +1104,7 @@ class EnvCore:
             "u_law": last[:, sl[1]],
             "u_residual": residual,
             "saturated": status[:, ST_SAT_STEPS] > 0,
-            "x3": x3,
+            "x3": last[:, sl[2]],
             "x3_hat": last[:, sl[3]],
             "controller_outputs": {name: last[:, s] for name, s in self._out_slices},
             "termination_reason": reason,
@@ -1105,13 +1128,7 @@ class EnvCore:
             for i in np.flatnonzero(terminated | truncated):
                 em[i] = self.episode_metrics(int(i), reason[i], trunc_reason[i])
             info["episode_metrics"] = em
-        if flags:
-            self.done[:] = terminated | truncated
-        else:
-            self.done[:] = False
-        which = None if skip is None or not skip.any() else [int(i) for i in np.flatnonzero(~skip)]
-        obs = self.observe(info, which=which, t=t_end, noise=obs_noise)
-        return obs, rewards, terminated, truncated, info
+        return info
 
     def _check_start_time(self, value: Any) -> "tuple[float, float] | None":
         """``start_time`` as a (low, high) range in s, or None (every episode starts at t = 0).
@@ -1263,12 +1280,12 @@ class EnvCore:
 
     def trajectory(self, i: int = 0, release: bool = False):
         """Arm i's current episode so far on the 1 ms grid, as a
-        :class:`blf_gym.simulate.Trajectory` (requires ``record=True``; its signals are the
+        :class:`blf_gym.kernel.simulate.Trajectory` (requires ``record=True``; its signals are the
         ``record_channels``, all by default), with the same counters as the inner path's:
         violating integration steps, the first one, saturated steps and divergence.
         ``release=True`` frees the arm's record once it is copied out (an evaluation that reduces
         each episode as it comes keeps one copy, not two)."""
-        from .simulate import Trajectory, divergence_message
+        from blf_gym.kernel.simulate import Trajectory, divergence_message
 
         if not self.record:
             raise ValueError("trajectories are kept only with record=True")
@@ -1313,7 +1330,7 @@ class EnvCore:
         X = self.loop.X
         if t is None:
             t = self.loop.time
-        b = self.loop._batch
+        b = self.loop.batch
         if noise is None:
             noise = self._obs_noise
             noise[:] = 0.0

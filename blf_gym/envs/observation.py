@@ -14,12 +14,12 @@ from typing import NamedTuple, Sequence
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from .bounds import BOUND_SIGNALS, KA, KB, bounds_into
-from .params import REFERENCE_PACK
-from .reference import reference_into
-from .status import LAST_COLUMNS
+from blf_gym.model.bounds import BOUND_SIGNALS, KA, KB, bounds_into
+from blf_gym.model.params import REFERENCE_PACK
+from blf_gym.model.reference import reference_into
+from blf_gym.kernel.status import LAST_COLUMNS
 
 __all__ = ["Entry", "OBSERVATION", "SOURCES", "optional_observations", "observation_index", "observation_layout",
            "SQUASH_VELOCITY", "SQUASH_REF_ACCELERATION", "SQUASH_DISTURBANCE", "PREVIEW_STEP", "PREVIEW_POINTS",
@@ -58,7 +58,7 @@ SOURCES = {
     "state": "q or qd (the plant's true angles and velocities, per joint)",
     "observer": "<state> (a state part of the observer in use)",
     "controller": "<output> (a controller output at the start of the last integration step)",
-    "last": f"<column> (one of {', '.join(LAST_COLUMNS)}: the signals of blf_gym.status.LAST_COLUMNS)",
+    "last": f"<column> (one of {', '.join(LAST_COLUMNS)}: the signals of blf_gym.kernel.status.LAST_COLUMNS)",
 }
 """The signals an entry's ``source`` can name, as ``kind:name``."""
 
@@ -206,7 +206,7 @@ def plan_row(entry: Entry, n: int, observer_part, controller_part, last_width: i
         size = part[1]
     else:
         raise ValueError(f"observation entry {entry.group!r}: unknown source {entry.source!r} (one of "
-                         f"{', '.join(k + ':...' for k in SOURCES)}; see blf_gym.observation.SOURCES)")
+                         f"{', '.join(k + ':...' for k in SOURCES)}; see blf_gym.envs.observation.SOURCES)")
     if size != want:
         raise ValueError(f"observation entry {entry.group!r}: its source {entry.source!r} has {size} entries, "
                          f"not {want}")

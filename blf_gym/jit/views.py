@@ -1,14 +1,14 @@
 """Views of the kernel's scratch arrays whose length LLVM sees as a constant.
 
-The closed-loop kernel (:mod:`blf_gym.simulate`) and the glue generated for plug-ins
-(:mod:`blf_gym.blocks`) cut every per-joint signal out of larger arrays with these, so that each
+The closed-loop kernel (:mod:`blf_gym.kernel.simulate`) and the glue generated for plug-ins
+(:mod:`blf_gym.plugins.blocks`) cut every per-joint signal out of larger arrays with these, so that each
 per-joint loop has a compile-time length.
 """
 
 from __future__ import annotations
 
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.core import cgutils
 from numba.core.imputils import impl_ret_borrowed

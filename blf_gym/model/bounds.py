@@ -9,17 +9,17 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from . import vmath
+from blf_gym.jit import vmath
 
-from .params import BOUNDS_PACK, BoundParams
+from blf_gym.model.params import BOUNDS_PACK, BoundParams
 
 __all__ = ["bounds_into", "bounds_exponent", "bounds_from", "error_bounds", "log_rate", "BOUND_SIGNALS", "BOUND_LEN"]
 
 BOUND_SIGNALS = ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot", "k_b_ddot")
 """The vector written by :func:`bounds_into`, declared once (these are also the plug-in signals'
-names, :mod:`blf_gym.blocks`)."""
+names, :mod:`blf_gym.plugins.blocks`)."""
 BOUND_LEN = len(BOUND_SIGNALS)
 KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT = range(BOUND_LEN)
 _BP = {name: i for i, name in enumerate(BOUNDS_PACK)}
@@ -31,7 +31,7 @@ _AMP_A, _FLOOR_A, _AMP_B, _FLOOR_B, _RATE = (_BP[k] for k in ("upper_amplitude",
 def bounds_into(t, bp, out):
     """Write ``[k_a, k_a', k_a'', k_b, k_b', k_b'']`` at time ``t`` into ``out``.
 
-    ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.params.BOUNDS_PACK`.
+    ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.model.params.BOUNDS_PACK`.
     """
     bounds_from(vmath.exp(bounds_exponent(t, bp)), bp, out)
 

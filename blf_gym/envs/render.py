@@ -12,10 +12,10 @@ from typing import Any
 
 import numpy as np
 
-from .bounds import error_bounds
-from .dynamics import joint_positions
-from .reference import joint_reference
-from .params import Scenario
+from blf_gym.model.bounds import error_bounds
+from blf_gym.model.dynamics import joint_positions
+from blf_gym.model.reference import joint_reference
+from blf_gym.model.params import Scenario
 
 
 class ArmRenderer:

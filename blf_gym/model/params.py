@@ -217,7 +217,7 @@ def check_reals(owner: str, name: str, value: Any, length: int | None = None,
 def check_instance(owner: str, name: str, value: Any, cls: type) -> Any:
     """``value`` if it is an instance of ``cls``; else ValueError naming the field."""
     if not isinstance(value, cls):
-        raise ValueError(f"{_label(owner, name)} must be a blf_gym.params.{cls.__name__}, got {value!r}")
+        raise ValueError(f"{_label(owner, name)} must be a blf_gym.model.params.{cls.__name__}, got {value!r}")
     return value
 
 
@@ -423,7 +423,7 @@ class SimParams:
         _set(self, "dt", check_real(o, "dt", self.dt, DT_MIN, self.sample_period, unit="s",
                                     hint=f" dividing sample_period={self.sample_period} s exactly"))
         _set(self, "duration", check_real(o, "duration", self.duration, lo=0.0, hi=MAX_DURATION, lo_open=True,
-                                          unit="s", hint=" (blf_gym.params.MAX_DURATION: an episode's signals and "
+                                          unit="s", hint=" (blf_gym.model.params.MAX_DURATION: an episode's signals and "
                                           "the score reward's reference are kept per 1 ms sample)"))
         for name, unit in (("max_torque", "N m"), ("divergence_limit", ""), ("error_rtol", ""), ("error_atol", "")):
             _set(self, name, check_real(o, name, getattr(self, name), lo=0.0, lo_open=True, unit=unit))
@@ -455,11 +455,11 @@ class SimParams:
 
 
 BOUNDS_PACK = ("upper_amplitude", "upper_floor", "lower_amplitude", "lower_floor", "decay_rate")
-"""The packed bounds (:meth:`BoundParams.pack`), declared once; ``blf_gym.bounds`` reads its offsets."""
+"""The packed bounds (:meth:`BoundParams.pack`), declared once; ``blf_gym.model.bounds`` reads its offsets."""
 
 REFERENCE_PACK = ("frequency", "center_x", "center_y", "radius", "orientation", "branch", "wrist_x", "wrist_y",
                   "k", "cos_beta", "sin_beta", "beta")
-"""The packed reference (:meth:`Scenario.pack_reference`), declared once; ``blf_gym.reference``
+"""The packed reference (:meth:`Scenario.pack_reference`), declared once; ``blf_gym.model.reference``
 reads its offsets: the circle's frequency (Hz), centre (m), radius (m) and orientation (rad), the
 branch (0 smooth, 1 standard), then derived constants: the wrist circle's centre (m), k, and the
 cosine, sine and value of beta, the angle of the wrist centre."""
@@ -471,7 +471,7 @@ PLANT_TAIL = (
     "max_torque", "divergence_limit", "error_rtol", "error_atol", "unstable_steps",  # SimParams
 )
 """The packed plant vector after the arm block (2n+1 entries), declared once: the kernel reads
-every offset from this tuple (``blf_gym.simulate``), :meth:`Scenario.pack_plant` writes it."""
+every offset from this tuple (``blf_gym.kernel.simulate``), :meth:`Scenario.pack_plant` writes it."""
 
 
 def plant_length(n: int) -> int:

@@ -18,17 +18,17 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
-from . import vmath
+from blf_gym.jit import vmath
 
-from .params import REFERENCE_PACK, Scenario
+from blf_gym.model.params import REFERENCE_PACK, Scenario
 
 __all__ = ["reference_into", "reference_angle", "reference_from", "joint_reference", "REFERENCE_SIGNALS"]
 
 REFERENCE_SIGNALS = ("q_d", "qd_d", "qdd_d")
 """The vector written by :func:`reference_into`, n entries each, declared once (also the plug-in
-signals' names, :mod:`blf_gym.blocks`)."""
+signals' names, :mod:`blf_gym.plugins.blocks`)."""
 _RP = {name: i for i, name in enumerate(REFERENCE_PACK)}
 _FREQ, _RADIUS, _ORIENT, _BRANCH = _RP["frequency"], _RP["radius"], _RP["orientation"], _RP["branch"]
 _WX, _WY, _K, _CB, _SB, _BETA = (_RP[k] for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))

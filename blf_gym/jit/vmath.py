@@ -1,6 +1,6 @@
 """Elementary functions the closed loop's compiler can vectorise across arms.
 
-The batched kernel (:mod:`blf_gym.simulate`) steps blocks of arms with the same entry of
+The batched kernel (:mod:`blf_gym.kernel.simulate`) steps blocks of arms with the same entry of
 neighbouring arms side by side in memory, so that one loop over the arms runs on vector registers.
 A call into the C maths library (``np.sin``, ``np.exp``...) cannot be vectorised (llvmlite has no
 vector maths library here), and it would keep the plant's trigonometry, the reference and the bounds
@@ -8,8 +8,8 @@ scalar. These functions are written as straight-line arithmetic with selects ins
 which LLVM vectorises.
 
 Every path of the closed loop uses them (the single env, the vector env, the reproduction, the
-evaluation), through the plant's link angles (:func:`blf_gym.dynamics.abs_trig_into`), the reference
-(:func:`blf_gym.reference.reference_into`), the bounds and the friction. A block of 4 arms
+evaluation), through the plant's link angles (:func:`blf_gym.model.dynamics.abs_trig_into`), the reference
+(:func:`blf_gym.model.reference.reference_into`), the bounds and the friction. A block of 4 arms
 evaluates them on vector registers, and one arm alone evaluates its 2n + 1 sines and cosines and
 its n + 1 exponentials of a stage in one vector loop each, so a batch and single arms compute the
 same function of the same argument and agree bit for bit. Against the C library they differ in
@@ -30,7 +30,7 @@ import math
 
 import numpy as np
 from numba import njit
-from . import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
+from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 from numba import types as nbtypes
 from numba.extending import intrinsic
 

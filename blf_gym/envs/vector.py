@@ -1,7 +1,7 @@
 """``PlanarBLFVectorEnv``: N arms in one compiled kernel call (``gym.make_vec``'s vector entry point).
 
-The arms are independent episodes of :class:`~blf_gym.env.PlanarBLFEnv`, computed by the same
-:class:`~blf_gym.envcore.EnvCore` and the same kernel, split over threads. Arm i reset with seed
+The arms are independent episodes of :class:`~blf_gym.envs.env.PlanarBLFEnv`, computed by the same
+:class:`~blf_gym.envs.envcore.EnvCore` and the same kernel, split over threads. Arm i reset with seed
 ``s + i`` is bit-identical to a single env reset with that seed.
 
 Autoreset follows Gymnasium's modes (``autoreset_mode``, default ``AutoresetMode.NEXT_STEP``, as
@@ -25,8 +25,8 @@ from gymnasium.utils import seeding
 from gymnasium.vector import AutoresetMode, VectorEnv
 from gymnasium.vector.utils import batch_space
 
-from .envcore import CORE_BOUND_SCALE, EnvCore, check_env_kwargs, warn_if_oversubscribed
-from .params import check_int, is_integer
+from blf_gym.envs.envcore import CORE_BOUND_SCALE, EnvCore, check_env_kwargs, warn_if_oversubscribed
+from blf_gym.model.params import check_int, is_integer
 
 __all__ = ["PlanarBLFVectorEnv", "default_threads", "make_residual_vector_env"]
 
@@ -43,13 +43,13 @@ def _with_masks(info: dict[str, Any], mask: np.ndarray) -> dict[str, Any]:
 def default_threads(num_envs: int) -> int:
     """The vector env's default numba threads: half the cores (at least 1, at most one per arm),
     so that the learner beside it (torch, which takes every core by default) keeps the rest."""
-    from .params import usable_cores
+    from blf_gym.model.params import usable_cores
 
     return max(1, min(num_envs, usable_cores() // 2))
 
 
 class PlanarBLFVectorEnv(VectorEnv):
-    """Batched ``PlanarBLF-v0``; keyword arguments are those of :class:`~blf_gym.env.PlanarBLFEnv`
+    """Batched ``PlanarBLF-v0``; keyword arguments are those of :class:`~blf_gym.envs.env.PlanarBLFEnv`
     plus ``num_envs``, ``autoreset_mode`` (see the module doc) and ``threads`` (default
     :func:`default_threads`: half the cores, so a learner beside the env is not starved)."""
 
@@ -178,8 +178,8 @@ class PlanarBLFVectorEnv(VectorEnv):
 
 def make_residual_vector_env(num_envs: int = 1, **kwargs: Any) -> PlanarBLFVectorEnv:
     """``PlanarBLFResidual-v0``'s vector entry point: :class:`PlanarBLFVectorEnv`, refusing a
-    controller that would make it plain (:func:`blf_gym.env.check_residual_controller`)."""
-    from .env import check_residual_controller
+    controller that would make it plain (:func:`blf_gym.envs.env.check_residual_controller`)."""
+    from blf_gym.envs.env import check_residual_controller
 
     check_residual_controller("PlanarBLFResidual-v0", kwargs)
     return PlanarBLFVectorEnv(num_envs=num_envs, **kwargs)
