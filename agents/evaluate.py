@@ -641,12 +641,13 @@ def _figure(sc: str, rows: list[tuple[dict[str, Any], Any]], kind: str) -> Any:
     columns = [("laws" + "".join(f" and {w}" for w in extra), [x for x in rows if not learned_plain(x[0])]),
                ("plain agents (own scale)", [x for x in rows if learned_plain(x[0])])]
     columns = [c for c in columns if c[1]]
-    fig, axes = plt.subplots(3, len(columns), figsize=(9 if len(columns) == 1 else 14, 7.6), sharex=True,
+    n = rows[0][1].e1.shape[1]  # joints: one row of axes each
+    fig, axes = plt.subplots(n, len(columns), figsize=(9 if len(columns) == 1 else 14, 7.6 * (n / 3)), sharex=True,
                              squeeze=False)
     names = [r["policy"] for r, _ in rows]
     for col, (title, members) in enumerate(columns):
         plain = learned_plain(members[0][0])
-        for j in range(3):
+        for j in range(n):
             ax = axes[j, col]
             for r, tr in members:
                 i = names.index(r["policy"])

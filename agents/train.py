@@ -419,7 +419,8 @@ def _new_model(cls, run: RunSpec, tc: TrainConfig, cfg_file: str, venv, out: Pat
         if "action_noise" not in inspect.signature(cls.__init__).parameters:
             raise ValueError(f"{_where(cfg_file)}: action_noise_std needs an algorithm that takes SB3's action_noise "
                              f"(an off-policy one); {run.algo} does not")
-        kwargs["action_noise"] = NormalActionNoise(np.zeros(3), float(tc.action_noise_std) * np.ones(3))
+        n_act = int(np.prod(venv.action_space.shape))  # one entry per joint
+        kwargs["action_noise"] = NormalActionNoise(np.zeros(n_act), float(tc.action_noise_std) * np.ones(n_act))
     tb = None
     try:
         import tensorboard  # noqa: F401

@@ -79,7 +79,7 @@ def _rmse_and_failure(controller: Any, scenarios: Sequence[Any], residual_filter
         by_duration.setdefault(sc.sim.duration, []).append(i)
     res: dict[int, Any] = {}
     for idx in by_duration.values():
-        zero = None if residual_filter is None else np.zeros((len(idx), 3))
+        zero = None if residual_filter is None else np.zeros((len(idx), scenarios[idx[0]].arm.n_links))
         trajs = simulate_batch([scenarios[i] for i in idx], controller, noise_seeds=idx, residual=zero,
                                residual_filter=residual_filter)
         for i, tr in zip(idx, trajs):

@@ -568,6 +568,9 @@ class EnvCore:
         self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
         self.observer = make_observer(observer)
         self.residual = self.controller is not NO_CONTROLLER
+        if not self.residual and self.observer.nominal != NO_CONTROLLER.nominal:
+            # plain mode on another arm: the zero-torque inner controller shares the observer's model
+            self.controller = replace(NO_CONTROLLER, nominal=self.observer.nominal)
         self.residual_scale = float(residual_scale)
         self.action_scale = self._check_action_scale(action_scale)
         self.privileged = bool(privileged)
@@ -575,6 +578,12 @@ class EnvCore:
         self._set_reward(reward_weights)
         self.start_time = self._check_start_time(start_time)
         self.n = self.base.arm.n_links
+        if not self.residual and self.n != 3 and (self.weights.score > 0 or self.weights.relative):
+            raise ValueError(
+                f"{o} reward_weights: in plain mode the reward's score and relative terms compare with the "
+                f"proposed law, whose gains are the paper's, for 3 links; this arm has {self.n}. Give "
+                "reward_weights={} (the shaped reward) or another reward without them, or run the law in "
+                "residual mode with gains for this arm")
         self._build_loop(residual_filter, threads)
         self._set_observation(observation_extras)
         self._allocate()

@@ -55,7 +55,7 @@ from blf_gym.model.dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from blf_gym.model.params import BOUNDS_PACK, PLANT_TAIL, REFERENCE_PACK, Scenario, check_int, plant_length, usable_cores
+from blf_gym.model.params import BOUNDS_PACK, PLANT_TAIL, Scenario, check_int, plant_length, reference_length, usable_cores
 from blf_gym.kernel.reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
 from blf_gym.jit.views import fixed
 from blf_gym.kernel.status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
@@ -359,7 +359,7 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
              ("x3", n), ("cout", n_out), ("fout", n_fout), ("rr", n), ("Mp", n * n), ("Lp", n * n),
              ("nom", nominal_length(n)), ("pw", (10 + WORK_PER_LINK) * n + n * n), ("wl", work_length(n)),
              ("wo", work_length(n)), ("smp", 4 * n), ("fr", n), ("res", n), ("plant", plant_length(n)),
-             ("rp", len(REFERENCE_PACK)), ("bp", len(BOUNDS_PACK)), ("lg", n_law_gains), ("og", n_obs_gains),
+             ("rp", reference_length(n)), ("bp", len(BOUNDS_PACK)), ("lg", n_law_gains), ("og", n_obs_gains),
              ("fg", n_filter_gains), ("ts", 1), ("flags", _N_FLAGS), ("ang", _trig_slots(n)), ("sn", _trig_slots(n)),
              ("cs", _trig_slots(n)), ("ex", _exp_slots(n)), ("ev", _exp_slots(n))]
     out, o = {}, 0
@@ -1265,7 +1265,7 @@ class ClosedLoop:
             self._batch = Batch(
                 plant=np.zeros((self.N, plant_length(n))),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
-                ref=np.zeros((self.N, len(REFERENCE_PACK))),
+                ref=np.zeros((self.N, reference_length(n))),
                 bnd=np.zeros((self.N, len(BOUNDS_PACK))),
                 law_gains=np.tile(self.controller.gains, (self.N, 1)),
                 obs_gains=np.tile(self.observer.gains, (self.N, 1)),

@@ -31,6 +31,11 @@ __all__ = [
     "Scenario",
     "PRESETS",
     "preset",
+    "joint_scenario",
+    "REFERENCE_PACK",
+    "REFERENCE_JOINT_PACK",
+    "REFERENCE_KINDS",
+    "reference_length",
     "DT_MIN",
     "check_real",
     "check_reals",
@@ -326,13 +331,19 @@ Branch = Literal["smooth", "standard"]
 
 @dataclass(frozen=True)
 class ReferenceParams:
-    """End-effector circle x_d = cx + r cos(2 pi f t), y_d = cy + r sin(2 pi f t), phi_d (Section 4.1).
+    """The task's reference, one of two kinds.
 
-    Joint references come from inverse kinematics (3 links only). The paper's circle puts the wrist
-    on a circle that touches the inner workspace boundary |w| = |l1 - l2|, where the elbow folds and
-    the Jacobian is singular. ``branch="smooth"`` (default) passes through the fold analytically;
-    ``"standard"`` keeps q2 in [0, pi] and so has a velocity jump at every fold.
-    The centre, radius and orientation must keep that tangency (checked by the scenario).
+    ``kind="circle"`` (default, the paper's Section 4.1): the end effector runs on the circle
+    x_d = cx + r cos(2 pi f t), y_d = cy + r sin(2 pi f t) with a fixed angle phi_d. Joint references
+    come from inverse kinematics (3 links only). The paper's circle puts the wrist on a circle that
+    touches the inner workspace boundary |w| = |l1 - l2|, where the elbow folds and the Jacobian is
+    singular. ``branch="smooth"`` (default) passes through the fold analytically; ``"standard"``
+    keeps q2 in [0, pi] and so has a velocity jump at every fold. The centre, radius and orientation
+    must keep that tangency (checked by the scenario).
+
+    ``kind="joint"``: one sinusoid per joint, q_d,j(t) = offsets[j] + amplitudes[j] sin(2 pi f t +
+    phases[j]), for an arm of any number of links (one entry per link in each of the three tuples;
+    the circle's fields are then unused). Smooth, with analytic derivatives.
     """
 
     frequency: float = 0.1
@@ -345,6 +356,14 @@ class ReferenceParams:
     """phi_d, the end-effector's absolute angle, rad."""
     branch: Branch = "smooth"
     """Inverse-kinematics branch: "smooth" or "standard"."""
+    kind: str = "circle"
+    """"circle" (the paper's Cartesian circle, 3 links) or "joint" (one sinusoid per joint, any n)."""
+    amplitudes: tuple[float, ...] = field(default=(), metadata={"unit": "rad"})
+    """kind="joint": each joint's amplitude, rad (>= 0)."""
+    phases: tuple[float, ...] = field(default=(), metadata={"unit": "rad"})
+    """kind="joint": each joint's phase, rad."""
+    offsets: tuple[float, ...] = field(default=(), metadata={"unit": "rad"})
+    """kind="joint": each joint's centre angle, rad."""
 
     def __post_init__(self) -> None:
         o = "ReferenceParams"
@@ -353,6 +372,20 @@ class ReferenceParams:
         _set(self, "radius", check_real(o, "radius", self.radius, lo=0.0, lo_open=True, unit="m"))
         _set(self, "orientation", check_real(o, "orientation", self.orientation, unit="rad"))
         check_choice(o, "branch", self.branch, ("smooth", "standard"))
+        check_choice(o, "kind", self.kind, REFERENCE_KINDS)
+        if self.kind == "circle":
+            for name in ("amplitudes", "phases", "offsets"):
+                if tuple(getattr(self, name)) != ():
+                    raise ValueError(f"ReferenceParams.{name} applies to kind='joint' only; the circle's joint "
+                                     f"references come from its inverse kinematics (got {getattr(self, name)!r})")
+            return
+        amps = check_reals(o, "amplitudes", self.amplitudes, lo=0.0, unit="rad")
+        if not amps:
+            raise ValueError("ReferenceParams.amplitudes must give one amplitude per joint for kind='joint' "
+                             "(rad, >= 0), got ()")
+        _set(self, "amplitudes", amps)
+        _set(self, "phases", check_reals(o, "phases", self.phases, len(amps), unit="rad"))
+        _set(self, "offsets", check_reals(o, "offsets", self.offsets, len(amps), unit="rad"))
 
 
 @dataclass(frozen=True)
@@ -458,11 +491,24 @@ BOUNDS_PACK = ("upper_amplitude", "upper_floor", "lower_amplitude", "lower_floor
 """The packed bounds (:meth:`BoundParams.pack`), declared once; ``blf_gym.model.bounds`` reads its offsets."""
 
 REFERENCE_PACK = ("frequency", "center_x", "center_y", "radius", "orientation", "branch", "wrist_x", "wrist_y",
-                  "k", "cos_beta", "sin_beta", "beta")
-"""The packed reference (:meth:`Scenario.pack_reference`), declared once; ``blf_gym.model.reference``
-reads its offsets: the circle's frequency (Hz), centre (m), radius (m) and orientation (rad), the
-branch (0 smooth, 1 standard), then derived constants: the wrist circle's centre (m), k, and the
-cosine, sine and value of beta, the angle of the wrist centre."""
+                  "k", "cos_beta", "sin_beta", "beta", "kind")
+"""The head of the packed reference (:meth:`Scenario.pack_reference`), declared once;
+``blf_gym.model.reference`` reads its offsets: the circle's frequency (Hz), centre (m), radius (m)
+and orientation (rad), the branch (0 smooth, 1 standard), then derived constants: the wrist
+circle's centre (m), k, and the cosine, sine and value of beta, the angle of the wrist centre; then
+the kind (0 circle, 1 joint). For kind "joint" only the frequency is used, with beta = 0."""
+
+REFERENCE_JOINT_PACK = ("cos_phase", "sin_phase", "amplitude", "offset")
+"""After the head, n entries of each of these, in this order (a block of n per name): the joint
+sinusoids' phases (as cosine and sine), amplitudes and offsets; zeros for kind "circle"."""
+
+REFERENCE_KINDS = ("circle", "joint")
+"""The reference kinds (:class:`ReferenceParams`), in the order of their packed code."""
+
+
+def reference_length(n: int) -> int:
+    """Length of the packed reference of an n-link scenario."""
+    return len(REFERENCE_PACK) + len(REFERENCE_JOINT_PACK) * n
 
 PLANT_TAIL = (
     "viscous", "coulomb", "tanh_slope",                              # friction, FrictionParams
@@ -509,11 +555,18 @@ class Scenario:
                           ("sim", SimParams)):
             check_instance("Scenario", name, getattr(self, name), cls)
         n = self.arm.n_links
-        if n != 3:
+        r = self.reference
+        if r.kind == "circle" and n != 3:
             raise ValueError(
-                f"Scenario.arm must have 3 links: the paper's reference (a Cartesian circle with a "
-                f"fixed orientation) is solved by 3-link inverse kinematics; got {n}"
+                f"Scenario.arm must have 3 links for the reference kind 'circle': the paper's reference (a "
+                f"Cartesian circle with a fixed orientation) is solved by 3-link inverse kinematics; got {n}. "
+                f"For another number of links give ReferenceParams(kind='joint', ...) (see joint_scenario)"
             )
+        if r.kind == "joint" and len(r.amplitudes) != n:
+            raise ValueError(f"Scenario.reference: kind 'joint' needs one amplitude, phase and offset per joint "
+                             f"({n} for this arm), got {len(r.amplitudes)}")
+        if n != 3 and tuple(self.initial_error) == (0.0, 0.0, 0.0):
+            _set(self, "initial_error", (0.0,) * n)  # the default: no initial error on any joint
         e0 = check_reals("Scenario", "initial_error", self.initial_error, n, unit="rad")
         _set(self, "initial_error", e0)
         b = self.bounds
@@ -527,7 +580,8 @@ class Scenario:
                 )
         _set(self, "angle_noise_std", check_real("Scenario", "angle_noise_std", self.angle_noise_std, lo=0.0,
                                                  unit="rad"))
-        self._check_reference_geometry()
+        if r.kind == "circle":
+            self._check_reference_geometry()
 
     def _check_reference_geometry(self) -> None:
         l1, l2, l3 = self.arm.lengths
@@ -560,7 +614,18 @@ class Scenario:
         return np.concatenate([self.arm.pack(), np.asarray(tail, dtype=np.float64)])
 
     def pack_reference(self) -> np.ndarray:
-        """Layout :data:`REFERENCE_PACK`."""
+        """Layout :data:`REFERENCE_PACK`, then :data:`REFERENCE_JOINT_PACK` (a block of n each);
+        length :func:`reference_length`."""
+        r = self.reference
+        n = self.arm.n_links
+        if r.kind == "joint":
+            head = {name: 0.0 for name in REFERENCE_PACK}
+            head.update(frequency=r.frequency, cos_beta=1.0, kind=float(REFERENCE_KINDS.index("joint")))
+            joints = np.concatenate([np.cos(r.phases), np.sin(r.phases), r.amplitudes, r.offsets])
+            return np.concatenate([np.array([head[name] for name in REFERENCE_PACK], dtype=np.float64), joints])
+        return np.concatenate([self._pack_circle(), np.zeros(len(REFERENCE_JOINT_PACK) * n)])
+
+    def _pack_circle(self) -> np.ndarray:
         r = self.reference
         l3 = self.arm.lengths[2]
         wcx = r.center[0] - l3 * math.cos(r.orientation)
@@ -571,6 +636,7 @@ class Scenario:
             "frequency": r.frequency, "center_x": r.center[0], "center_y": r.center[1], "radius": r.radius,
             "orientation": r.orientation, "branch": 0.0 if r.branch == "smooth" else 1.0, "wrist_x": wcx,
             "wrist_y": wcy, "k": k, "cos_beta": wcx / dist, "sin_beta": wcy / dist, "beta": math.atan2(wcy, wcx),
+            "kind": float(REFERENCE_KINDS.index("circle")),
         }
         return np.array([values[name] for name in REFERENCE_PACK], dtype=np.float64)
 
@@ -595,6 +661,26 @@ def preset(name: str, **sim_overrides: Any) -> Scenario:
     if unknown:
         raise ValueError(f"preset: unknown SimParams field(s) {unknown}; accepted: "
                          f"{[f.name for f in fields(SimParams)]}")
+    if sim_overrides:
+        sc = replace(sc, sim=replace(sc.sim, **sim_overrides))
+    return sc
+
+
+def joint_scenario(n: int, frequency: float = 0.1, amplitude: float = 0.5, name: str | None = None,
+                   **sim_overrides: Any) -> Scenario:
+    """A simple joint-space task for an arm of ``n`` links (n >= 1): the paper's reach (0.8 m) and
+    total mass (0.53 kg) split evenly over the links, the paper's friction, dead zone, force and
+    bounds, and one sinusoid per joint (``amplitude`` rad at ``frequency`` Hz, the joints' phases
+    spread evenly over half a period, no offset, no initial error).
+
+    It exists so that the kernel, the env and the plug-ins run at any n with a reference they can
+    follow; it is not the paper's task (that is :data:`PRESETS`, 3 links), and not a tuned task
+    family. ``sim_overrides`` replace :class:`SimParams` fields, as :func:`preset`'s do."""
+    n = check_int("joint_scenario", "n", n, lo=1)
+    arm = ArmParams(lengths=(0.8 / n,) * n, masses=(0.53 / n,) * n)
+    ref = ReferenceParams(frequency=frequency, kind="joint", amplitudes=(float(amplitude),) * n,
+                          phases=tuple(math.pi * j / n for j in range(n)), offsets=(0.0,) * n)
+    sc = Scenario(name=name or f"joint-{n}link-{frequency:g}hz", arm=arm, reference=ref)
     if sim_overrides:
         sc = replace(sc, sim=replace(sc.sim, **sim_overrides))
     return sc

@@ -1,4 +1,5 @@
-"""Joint-space reference of the paper's Section 4.1, with analytic first and second derivatives.
+"""Joint-space reference, with analytic first and second derivatives: the paper's Section 4.1
+circle (kind "circle", 3 links) or one sinusoid per joint (kind "joint", any number of links).
 
 The end effector follows x_d = cx + r cos(w t), y_d = cy + r sin(w t), phi_d constant, with
 w = 2 pi f. Its wrist (end effector minus l3 along phi_d) runs on a circle of radius r around
@@ -12,6 +13,10 @@ analytic for all t and folds the elbow through q2 = pi at the instants theta = p
 **standard** branch keeps q2 in [0, pi] (acos of |k cos theta|): continuous, but its velocity jumps
 at every fold. Then q1 = atan2(w_y, w_x) - atan2(l2 sin q2, l1 + l2 cos q2) and
 q3 = phi_d - q1 - q2.
+
+Kind "joint": q_d,j = offset_j + a_j sin(w t + p_j). Its phase is packed with beta = 0, so the same
+angle theta = w t / 2 gives cos and sin of w t by the double angle, and each joint's sin and cos of
+w t + p_j follow from the packed cos p_j and sin p_j: one sincos per time, whatever n.
 """
 
 from __future__ import annotations
@@ -22,7 +27,7 @@ from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache 
 
 from blf_gym.jit import vmath
 
-from blf_gym.model.params import REFERENCE_PACK, Scenario
+from blf_gym.model.params import REFERENCE_JOINT_PACK, REFERENCE_PACK, Scenario
 
 __all__ = ["reference_into", "reference_angle", "reference_from", "joint_reference", "REFERENCE_SIGNALS"]
 
@@ -32,6 +37,11 @@ signals' names, :mod:`blf_gym.plugins.blocks`)."""
 _RP = {name: i for i, name in enumerate(REFERENCE_PACK)}
 _FREQ, _RADIUS, _ORIENT, _BRANCH = _RP["frequency"], _RP["radius"], _RP["orientation"], _RP["branch"]
 _WX, _WY, _K, _CB, _SB, _BETA = (_RP[k] for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))
+_KIND = _RP["kind"]
+# each block of REFERENCE_JOINT_PACK starts at _J0 + k n, k its index in that tuple
+_J0 = len(REFERENCE_PACK)
+_JCOS, _JSIN, _JAMP, _JOFF = (REFERENCE_JOINT_PACK.index(k) for k in ("cos_phase", "sin_phase", "amplitude", "offset"))
+
 
 @njit(cache=True, error_model="numpy", inline="always")
 def reference_angle(t, rp):
@@ -42,7 +52,7 @@ def reference_angle(t, rp):
 
 @njit(cache=True, error_model="numpy", inline="always")
 def reference_into(t, rp, arm, out):
-    """Write [q_d, qd_d, qdd_d] (9 entries) at time ``t`` into ``out``.
+    """Write [q_d, qd_d, qdd_d] (3n entries) at time ``t`` into ``out``.
 
     ``rp`` is :meth:`Scenario.pack_reference`; ``arm`` the packed arm (lengths are read from it).
     """
@@ -54,17 +64,9 @@ def reference_into(t, rp, arm, out):
 def reference_from(st, ct, rp, arm, out):
     """:func:`reference_into` given (sin, cos) of :func:`reference_angle` at t: the closed loop's
     kernel evaluates those with the plant's and the measurement's link angles in one loop."""
-    f = rp[_FREQ]
-    rad = rp[_RADIUS]
-    phi = rp[_ORIENT]
-    standard = rp[_BRANCH] > 0.5
-    wcx = rp[_WX]
-    wcy = rp[_WY]
-    k = rp[_K]
-    cb = rp[_CB]
-    sb = rp[_SB]
-    l1 = arm[0]
-    l2 = arm[1]
+    f, rad, phi, standard = rp[_FREQ], rp[_RADIUS], rp[_ORIENT], rp[_BRANCH] > 0.5
+    wcx, wcy, k, cb, sb = rp[_WX], rp[_WY], rp[_K], rp[_CB], rp[_SB]
+    l1, l2 = arm[0], arm[1]
     om = 2.0 * np.pi * f
     nu = 0.5 * om
     # theta = (om t - beta) / 2 with beta = angle(c_w); om t = 2 theta + beta
@@ -72,6 +74,9 @@ def reference_from(st, ct, rp, arm, out):
     s2t = 2.0 * st * ct
     c = c2t * cb - s2t * sb  # cos(om t)
     sn = s2t * cb + c2t * sb  # sin(om t)
+    if rp[_KIND] > 0.5:  # kind "joint" (packed with beta = 0)
+        _sinusoids_from(c, sn, om, rp, arm, out)
+        return
 
     # s = cos(q2 / 2) and its derivatives
     s = k * ct
@@ -132,17 +137,35 @@ def reference_from(st, ct, rp, arm, out):
     out[8] = -q1dd - q2dd
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _sinusoids_from(c, s, om, rp, arm, out):
+    """Kind "joint": q_d,j = offset_j + a_j sin(om t + p_j) and its derivatives, from c = cos(om t),
+    s = sin(om t). ``out`` holds 3n entries (callers pass the packed plant or the arm as ``arm``, so
+    n is read from ``out``)."""
+    n = out.shape[0] // 3
+    for j in range(n):
+        cp = rp[_J0 + _JCOS * n + j]
+        sp = rp[_J0 + _JSIN * n + j]
+        a = rp[_J0 + _JAMP * n + j]
+        sj = s * cp + c * sp  # sin(om t + p_j)
+        cj = c * cp - s * sp  # cos(om t + p_j)
+        out[j] = rp[_J0 + _JOFF * n + j] + a * sj
+        out[n + j] = a * om * cj
+        out[2 * n + j] = -a * om * om * sj
+
+
 @njit(cache=True, error_model="numpy")
 def _reference_table(ts, rp, arm):
-    out = np.empty((ts.shape[0], 9))
+    out = np.empty((ts.shape[0], 3 * ((arm.shape[0] - 1) // 2)))
     for i in range(ts.shape[0]):
         reference_into(ts[i], rp, arm, out[i])
     return out
 
 
 def joint_reference(t: np.ndarray | float, scenario: Scenario = Scenario()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(q_d, qd_d, qdd_d), each of shape ``t.shape + (3,)``, in rad, rad/s, rad/s^2."""
+    """(q_d, qd_d, qdd_d), each of shape ``t.shape + (n,)``, in rad, rad/s, rad/s^2."""
+    n = scenario.arm.n_links
     t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64)).ravel()
     table = _reference_table(t_arr, scenario.pack_reference(), scenario.arm.pack())
-    shape = np.shape(t) + (3,)
-    return (table[:, 0:3].reshape(shape), table[:, 3:6].reshape(shape), table[:, 6:9].reshape(shape))
+    shape = np.shape(t) + (n,)
+    return (table[:, 0:n].reshape(shape), table[:, n:2 * n].reshape(shape), table[:, 2 * n:3 * n].reshape(shape))

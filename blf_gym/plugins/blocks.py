@@ -780,13 +780,12 @@ def _trial(conn: Connection) -> None:
     """Run the three functions once in Python on plausible inputs (the paper's start), so that a wrong
     output shape, an unwritten output or an exception is reported against the plug-in."""
     from blf_gym.model.bounds import bounds_into
-    from blf_gym.model.params import preset
+    from blf_gym.model.params import joint_scenario, preset
     from blf_gym.model.reference import joint_reference
 
     c, o, n = conn.controller, conn.observer, conn.n
-    sc = preset("paper-0.1hz")
-    if sc.arm.n_links != n:
-        return  # no reference arm of this size to try it on
+    # the paper's start for 3 links, a joint-space task's for any other n
+    sc = preset("paper-0.1hz") if n == 3 else joint_scenario(n)
     q_d, qd_d, qdd_d = joint_reference(0.0, sc)
     y = q_d + 0.01
     ref = np.concatenate([q_d, qd_d, qdd_d]).astype(np.float64)
