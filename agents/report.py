@@ -307,12 +307,15 @@ def windows(traj_dir: Path, scenario: str, agent: str, law: str = "proposed", wi
 
 
 def _markdown(rows: list[dict[str, Any]]) -> str:
-    out = ["| policy | kind | scenario | seeds | RMSE j1 (deg) | j2 | j3 | mean / law (j1 j2 j3) | "
-           "violating samples | worst failure rate | seeds beating the law in every joint |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    n = len(rows[0]["rmse_mean"]) if rows else 3  # joints
+    joints = " ".join(f"j{j + 1}" for j in range(n))
+    out = ["| policy | kind | scenario | seeds | RMSE j1 (deg) | " + "".join(f"j{j + 1} | " for j in range(1, n))
+           + f"mean / law ({joints}) | violating samples | worst failure rate | seeds beating the law in every "
+           "joint |",
+           "|" + "---|" * (n + 8)]
     for r in rows:
         cells = []
-        for j in range(3):
+        for j in range(n):
             if r["seeds"] > 1:
                 cells.append(f"{r['rmse_mean'][j]:.4f} ({r['rmse_min'][j]:.4f}-{r['rmse_max'][j]:.4f})")
             else:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.evaluate import (AGENT_BATCH, _Actor, _batch_plan, agent_episodes, agent_group_episodes,
+from agents.episodes import (AGENT_BATCH, _Actor, _batch_plan, agent_episodes, agent_group_episodes,
                              build_scenarios, law_env_kwargs)
 from agents.loading import PRETRAINED, load_agent, pretrained_agents
 from blf_gym.results.metrics import episode_stats

@@ -45,7 +45,7 @@ def test_an_agent_s_peak_does_not_grow_with_its_episodes_and_its_rows_do_not_cha
     a, b = _peak(lambda: law_reference(small, meta, threads=1)), _peak(lambda: law_reference(large, meta, threads=1))
     assert b < 1.3 * a, (a, b)
     # batches change nothing: the first AGENT_BATCH episodes of the long list score as they do alone
-    from agents.evaluate import _ZeroResidual
+    from agents.episodes import _ZeroResidual
 
     alone = [episode_stats(t) for t in agent_episodes(_ZeroResidual(), meta, None, small, threads=1)]
     assert [s.rmse_deg for s in alone] == [s.rmse_deg for s in law_reference(large, meta, threads=1)[:AGENT_BATCH]]
@@ -53,20 +53,22 @@ def test_an_agent_s_peak_does_not_grow_with_its_episodes_and_its_rows_do_not_cha
 
 def test_blf_eval_keeps_one_trace_per_group_for_the_plots(tmp_path, monkeypatch):
     # the plots draw each group's first episode: that is all blf-eval keeps of the signals
-    import agents.evaluate as ev
+    import agents.eval_runner as ev  # where the run looks the plots up
 
     kept = {}
-    real = ev._plots
+    real = ev.plots
 
     def spy(results, out):
         kept["n"] = [len(first) for _, first in results]
         kept["fields"] = sorted(vars(results[0][1][0]))
         return real(results, out)
 
-    monkeypatch.setattr(ev, "_plots", spy)
+    monkeypatch.setattr(ev, "plots", spy)
     assert main(["--controllers", "proposed", "bc", "--agents", "--scenarios", "--suite", "randomized",
                  "--suite-seeds", "5", "--duration", "0.2", "--no-progress", "--out", str(tmp_path)]) == 0
     assert kept["n"] == [1, 1]
     assert kept["fields"] == ["e1", "k_a", "k_b", "n_samples", "t", "u"]
-    assert np.isfinite(summarize([episode_stats(ev.evaluate_controller("bc", _suite(1, 0.2))[0])], "x",
+    from agents.episodes import evaluate_controller
+
+    assert np.isfinite(summarize([episode_stats(evaluate_controller("bc", _suite(1, 0.2))[0])], "x",
                                  "baseline", "s", 1e-4)["rmse_deg"]).all()

@@ -167,7 +167,7 @@ def test_a_complete_run_writes_the_manifest_last_listing_every_file(tmp_path, mo
 
 
 def test_an_interrupted_run_keeps_its_finished_records_and_says_incomplete(tmp_path, capsys, monkeypatch):
-    import agents.evaluate as ev
+    import agents.eval_runner as ev  # where the run looks the episodes up
 
     real = ev.controller_episodes
     calls = []
@@ -252,7 +252,7 @@ def test_the_table_keeps_its_columns_aligned_for_long_names_and_large_errors(tmp
     """A long agent name, a varied label and five-digit RMSEs (a plain agent that turned the arm
     over) widen their columns instead of pushing the others out of line; a diverged group says so
     in its own column, which the legend explains."""
-    from agents.evaluate import TABLE_NAME_MAX, _table
+    from agents.eval_tables import TABLE_NAME_MAX, table as _table
 
     out = tmp_path / "set"
     assert eval_main([*TINY, "--out", str(out), "--no-plots"]) == 0
@@ -280,7 +280,7 @@ def test_the_plots_legend_covers_no_axes_and_overlapping_policies_differ():
     import numpy as np
     from types import SimpleNamespace
 
-    from agents.evaluate import _figure
+    from agents.eval_tables import _figure
 
     t = np.linspace(0.0, 1.0, 101)
     e1 = np.radians(np.outer(np.sin(6 * t), [1.0, 0.5, 0.2]))

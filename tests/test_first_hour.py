@@ -271,7 +271,7 @@ def test_blf_eval_takes_a_run_folder(tmp_path, capsys):
 def test_plain_agents_get_their_own_panel(tmp_path):
     from PIL import Image
 
-    from agents.evaluate import _plots
+    from agents.eval_tables import plots as _plots
     from blf_gym.results.metrics import summarize
     from blf_gym.model.params import preset
     from blf_gym.kernel.simulate import simulate
@@ -353,13 +353,14 @@ def test_an_out_that_is_a_file_is_one_line_and_exit_2(tmp_path, capsys, command)
 def test_a_full_disk_or_a_read_only_folder_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch,
                                                                    command, code, hint):
     # root ignores permission bits, so the failing write is injected where results are written
+    import agents.eval_runner as runner  # where blf-eval's run writes its records
     import agents.evaluate as ev
     import baselines.reproduce as rp
 
     def fail(records, out, *meta):
         raise OSError(code, os.strerror(code), str(Path(out) / "results.json"))
 
-    monkeypatch.setattr(ev if command == "blf-eval" else rp, "write_results", fail)
+    monkeypatch.setattr(runner if command == "blf-eval" else rp, "write_results", fail)
     main = ev.main if command == "blf-eval" else rp.main
     args = (["--controllers", "proposed", "--agents", "--suite-seeds", "0"] if command == "blf-eval"
             else ["--controller", "proposed"])

@@ -85,7 +85,7 @@ LIBRARY_INTERNALS = {
     ("blf_gym.kernel.simulate", "dispatcher._cache._cache_path"): "as above",
     ("blf_gym.kernel.simulate", "dispatcher._cache._cache_file"): "as above",
     ("blf_gym.kernel.simulate", "dispatcher._cache._cache_file._load_index"): "as above",
-    ("agents.evaluate", "pol._predict"): "SB3's policy hook behind predict(), on a tensor already batched",
+    ("agents.episodes", "pol._predict"): "SB3's policy hook behind predict(), on a tensor already batched",
     ("agents.lagrangian", "super()._setup_model"): "SB3's documented extension hooks of a subclass",
     ("agents.lagrangian", "super()._setup_learn"): "as above",
     ("agents.lagrangian", "super()._get_torch_save_params"): "as above",

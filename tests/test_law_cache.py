@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import agents.eval_runner as runner  # where the run looks the episodes up
 import agents.evaluate as ev
 from agents.lawcache import _package_files, code_digest, law_key, load_law, store_law
 from agents.loading import PRETRAINED
@@ -47,8 +48,8 @@ def _count(monkeypatch) -> dict[str, int]:
         calls["env"] += 1
         return real_groups(gs, meta, threads)
 
-    monkeypatch.setattr(ev, "controller_episodes", episodes)
-    monkeypatch.setattr(ev, "law_reference_groups", groups)
+    monkeypatch.setattr(runner, "controller_episodes", episodes)
+    monkeypatch.setattr(runner, "law_reference_groups", groups)
     return calls
 
 

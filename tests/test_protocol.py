@@ -150,7 +150,7 @@ def test_blf_eval_exits_2_naming_the_missing_statistics(tiny_run, tmp_path, caps
 # ---- 6. the law scores exactly 1 against itself, under noise, on the env path ----------------
 
 def test_a_zero_residual_scores_exactly_one_on_the_same_noise():
-    from agents.evaluate import _ZeroResidual, evaluate_agent, law_reference
+    from agents.episodes import _ZeroResidual, evaluate_agent, law_reference
 
     scs = [replace(sample_suite(np.random.default_rng(10_000 + k)), sim=replace(preset("paper-0.1hz").sim,
                                                                                  duration=1.0))
