@@ -14,11 +14,17 @@
 # is its last segment's model, and docs/budget/scale_eval.sh scores completed runs only. Restoring copies
 # the metadata, curve and checkpoint back into RUN's layout.
 #
+# Weights leave the tree (docs/weights.py): once a keep is committed, `python docs/weights.py shelve
+# KEPT` stages the removal of its weights (recorded in docs/weights.json with the commit that holds
+# them); commit that too. --restore brings shelved weights back first (`docs/weights.py fetch KEPT`),
+# and a keep forgets the manifest's entries of the files it replaces.
+#
 # An off-policy checkpoint's replay buffer (replay_buffer.pkl, about 270 MB at 1M samples) is not
 # kept: it is too large to commit. The kept state.json no longer lists it, so the set is complete
 # without it, and blf-train, resuming from it, lets the policy refill the buffer before updating
 # again (recorded in the segment's "replay_buffer").
 set -euo pipefail
+weights="$(dirname "$0")/../weights.py"
 newest() {  # the newest step_<N> folder under $1/checkpoints, or nothing
     local best="" n d
     for d in "$1"/checkpoints/step_*; do
@@ -32,6 +38,7 @@ newest() {  # the newest step_<N> folder under $1/checkpoints, or nothing
 if [ "${1:-}" = "--restore" ]; then
     [ "$#" -eq 3 ] || { echo "usage: $0 --restore KEPT RUN" >&2; exit 2; }
     kept=$2 run=$3
+    python3 "$weights" fetch --quiet "$kept" >/dev/null  # shelved weights back (nothing if none)
     ck=$(newest "$kept")
     [ -n "$ck" ] || { echo "$kept: no checkpoints/step_<N> folder to restore" >&2; exit 1; }
     have=$(newest "$run")
@@ -72,10 +79,14 @@ cp "$run/metadata.json" "$tmp/metadata.json"
 [ ! -f "$run/eval/curve.json" ] || cp "$run/eval/curve.json" "$tmp/curve.json"
 for f in model.zip vecnormalize.pkl; do [ ! -f "$run/$f" ] || cp "$run/$f" "$tmp/$f"; done
 # the new checkpoint is whole before the old one goes
-for d in "$kept"/checkpoints/step_*; do [ -d "$d" ] && rm -rf "$d"; done
+for d in "$kept"/checkpoints/step_*; do [ -d "$d" ] || continue; rm -rf "$d"; python3 "$weights" forget "$d" >/dev/null; done
 mv "$tmp/${ck##*/}" "$kept/checkpoints/"
 mv "$tmp/metadata.json" "$kept/metadata.json"
 [ ! -f "$tmp/curve.json" ] || mv "$tmp/curve.json" "$kept/curve.json"
-for f in model.zip vecnormalize.pkl; do [ ! -f "$tmp/$f" ] || mv "$tmp/$f" "$kept/$f"; done
+for f in model.zip vecnormalize.pkl; do
+    [ -f "$tmp/$f" ] || continue
+    mv "$tmp/$f" "$kept/$f"
+    python3 "$weights" forget "$kept/$f" >/dev/null
+done
 rmdir "$tmp"
 echo "$kept: kept ${ck##*/} of $run"
