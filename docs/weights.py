@@ -148,8 +148,7 @@ def _blob(path: str, commit: str) -> bytes:
 
 
 def _exclude(paths: list[str]) -> None:
-    git_dir = Path(_git("rev-parse", "--absolute-git-dir").stdout.strip())
-    exclude = git_dir / "info" / "exclude"
+    exclude = ROOT / _git("rev-parse", "--git-path", "info/exclude").stdout.strip()  # a worktree's is the common one
     have = set(exclude.read_text().splitlines()) if exclude.is_file() else set()
     new = [f"/{p}" for p in paths if f"/{p}" not in have]
     if new:
