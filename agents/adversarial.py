@@ -3,9 +3,10 @@
 ``python -m agents.adversarial --out docs/certificate`` runs a fixed list of residual sequences, the
 worst a residual agent could send, on the residual env (the tuned agents' set-up: 10 ms steps, an
 8 N m residual) and reports ``certificate_broken``: the share of episodes that violate a bound where
-the law alone does not. The list (31 sequences):
+the law alone does not. The list (2^n + 23 sequences for an arm of n links: 31 on the paper's arm):
 
-* ``sat±±±``: the residual saturated at one of the 8 sign patterns for the whole episode;
+* ``sat±±±``: the residual saturated at one of the 2^n sign patterns (8 on the paper's arm) for the
+  whole episode;
 * ``bang10``, ``bang20``, ``bang50``: all joints switching between +8 and -8 N m every 10, 20 or 50 ms;
 * ``rand00`` .. ``rand19``: uniform random actions in [-1, 1], seeded, drawn anew every agent step.
 
@@ -25,17 +26,19 @@ from typing import Any, Sequence
 import numpy as np
 
 from blf_gym.results.io import help_text
-from blf_gym.model.params import PRESETS
+from blf_gym.model.params import PRESETS, preset
 
 __all__ = ["sequences", "run", "main"]
 
 ENV_KWARGS = {"control_period": 0.01, "residual_scale": 8.0, "controller": "proposed"}
 
 
-def sequences(steps: int, n: int = 3) -> dict[str, np.ndarray]:
-    """The adversarial action sequences, each (steps, n) in [-1, 1]."""
+def sequences(steps: int, n: int | None = None) -> dict[str, np.ndarray]:
+    """The adversarial action sequences, each (steps, n) in [-1, 1], for an arm of ``n`` links
+    (default: the paper presets' arm, the one :func:`run` uses)."""
+    n = preset(next(iter(PRESETS))).arm.n_links if n is None else n
     out: dict[str, np.ndarray] = {}
-    for p in range(8):
+    for p in range(2 ** n):
         signs = np.array([1.0 if (p >> j) & 1 else -1.0 for j in range(n)])
         out["sat" + "".join("+" if s > 0 else "-" for s in signs)] = np.tile(signs, (steps, 1))
     for period_ms in (10, 20, 50):
@@ -70,7 +73,7 @@ def run(presets: Sequence[str] = tuple(PRESETS), suite_seeds: Sequence[int] = (1
     labels = [label for label, scs in groups for _ in scs]
     scenarios = [sc for _, scs in groups for sc in scs]
     steps = int(round(scenarios[0].sim.duration / ENV_KWARGS["control_period"]))
-    seqs = sequences(steps)
+    seqs = sequences(steps, scenarios[0].arm.n_links)
     meta = {"mode": "residual", "env_kwargs": dict(ENV_KWARGS)}
     law = law_reference(scenarios, meta, threads)
     rows = []

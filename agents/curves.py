@@ -51,7 +51,8 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
         first = curves[0][1]
         law = law_levels(int(first.get("suite_seeds", 4)), first.get("env_kwargs", {}).get("duration"))
     n = len(law[CURVE_GROUPS[0]])  # joints
-    fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, max(n, 3), figsize=(13 * max(n, 3) / 3, 11), sharex=True)
+    cols = max(n, 2)  # a column per joint, at least two: the bottom row's legend sits in the second
+    fig, axes = plt.subplots(len(CURVE_GROUPS) + 1, cols, figsize=(13 * cols / 3, 11), sharex=True)
     scale = 1.0 if log_steps else 1e3
     for name, c in curves:
         pts = c["points"]
@@ -77,6 +78,9 @@ def plot_curves(runs: Sequence[Path], out: Path, law: dict[str, list[float]] | N
             if log_steps:
                 ax.set_xscale("log")
             ax.grid(alpha=0.3)
+    for gi in range(len(CURVE_GROUPS)):
+        for j in range(n, cols):  # a single joint leaves the second column of the curves' rows empty
+            axes[gi, j].axis("off")
     axes[-1, 0].axhline(0, color="k", ls="--", lw=1.2, label="proposed law")
     axes[-1, 0].set_ylabel("violating samples\n(all scenarios)")
     axes[-1, 0].grid(alpha=0.3)

@@ -340,11 +340,12 @@ def evaluate_agent(model: Any, meta: dict[str, Any], norm: Any, scenarios: Seque
 
 
 class _ZeroResidual:
-    """The proposed law alone as an agent stepped period by period would be: a zero residual (the
-    tests check the law's held runs, ``agent_group_episodes(None, ...)``, against it)."""
+    """The proposed law alone as an agent stepped period by period would be: a zero residual of
+    ``n`` entries, one per joint (the tests check the law's held runs, ``agent_group_episodes(None,
+    ...)``, against it). Without ``n``, the paper presets' arm's (every preset is the paper's arm)."""
 
-    def __init__(self, n: int = 3) -> None:
-        self.n = n
+    def __init__(self, n: int | None = None) -> None:
+        self.n = preset("paper-0.1hz").arm.n_links if n is None else int(n)
 
     def predict(self, obs: np.ndarray, deterministic: bool = True):
         return np.zeros((obs.shape[0], self.n), dtype=np.float32), None

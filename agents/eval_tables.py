@@ -53,7 +53,8 @@ def table(records: Sequence[dict[str, Any]]) -> str:
     """blf-eval's console table: one row per record, each column as wide as its widest entry (so
     long names, labels and five-digit RMSEs keep the columns aligned), groups split by ``|``. The
     last column, ``div``, says ``yes`` when an episode of the group diverged."""
-    head = [["policy", "kind", "scenario", "ep"], ["RMSE j1", "j2", "j3"], ["score"],
+    n = max((len(r["rmse_deg"]) for r in records), default=1)  # joints: a column each
+    head = [["policy", "kind", "scenario", "ep"], ["RMSE j1", *(f"j{j + 1}" for j in range(1, n))], ["score"],
             ["viol", "frac", "fail", "cert"], ["CVaR"], ["excess", "margin"], ["1st viol"], ["u rms", "u peak"],
             ["div"]]
     rows = []
@@ -64,7 +65,7 @@ def table(records: Sequence[dict[str, Any]]) -> str:
         mar = min((v for v in r["min_margin_deg"] if v is not None), default=0.0)
         rows.append([
             [_fit(str(r["policy"])), r["kind"], r["scenario"], str(r["episodes"])],
-            [_num(v) for v in r["rmse_deg"]],
+            [_num(v) for v in r["rmse_deg"]] + ["-"] * (n - len(r["rmse_deg"])),
             [_num(r.get("score_vs_law"), 3)],
             [str(viol), f"{frac:.4f}", f"{r['failure_rate']:.2f}", _num(r.get("certificate_broken"), 2)],
             [_num(r["rmse_cvar_deg"])],

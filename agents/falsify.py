@@ -57,10 +57,14 @@ FIRST_CORNERS = 16
 """Corners of the box drawn (seeded) among the first cases, beside its centre and edges."""
 
 
-def space(ranges: dict[str, tuple[float, float]] | None = None, n: int = 3) -> dict[str, tuple[float, float]]:
+def space(ranges: dict[str, tuple[float, float]] | None = None, n: int | None = None) -> dict[str, tuple[float, float]]:
     """The searched box: each knob of ``ranges`` (default ``SAFE_RANGES``), a per-joint knob as one
-    entry per joint (``initial_error_0`` ...), by name -> (low, high)."""
+    entry per joint (``initial_error_0`` ...) of an arm of ``n`` links (default: :data:`BASE`'s arm,
+    the one every case varies), by name -> (low, high)."""
     from blf_gym.envs.scenarios import KNOBS, SAFE_RANGES, check_variations
+    from blf_gym.model.params import preset
+
+    n = preset(BASE).arm.n_links if n is None else n
 
     ranges = dict(SAFE_RANGES if ranges is None else ranges)
     per_joint = {k.name for k in KNOBS if k.per_joint}

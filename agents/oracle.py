@@ -71,7 +71,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print("RMSE (deg, joints 1 2 3); ratio = oracle / law (below 1: the oracle helps)")
+    n = groups[0][1][0].arm.n_links if groups and groups[0][1] else 0
+    print(f"RMSE (deg, joints {' '.join(str(j + 1) for j in range(n))}); ratio = oracle / law (below 1: the "
+          "oracle helps)")
     for label, scs in groups:
         law = oracle_rmse(scs, 0.01, oracle=False)
         print(f"\n{label}: law alone {' '.join(f'{v:.4f}' for v in law)}")

@@ -307,7 +307,9 @@ def windows(traj_dir: Path, scenario: str, agent: str, law: str = "proposed", wi
 
 
 def _markdown(rows: list[dict[str, Any]]) -> str:
-    n = len(rows[0]["rmse_mean"]) if rows else 3  # joints
+    if not rows:
+        return "No records to pool.\n"
+    n = len(rows[0]["rmse_mean"])  # joints
     joints = " ".join(f"j{j + 1}" for j in range(n))
     out = ["| policy | kind | scenario | seeds | RMSE j1 (deg) | " + "".join(f"j{j + 1} | " for j in range(1, n))
            + f"mean / law ({joints}) | violating samples | worst failure rate | seeds beating the law in every "

@@ -693,6 +693,7 @@ def _fmt_params(p: dict[str, Any]) -> str:
 
 
 def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[float]], counts: dict[str, int]) -> str:
+    joints = " ".join(f"j{j + 1}" for j in range(len(law[CURVE_GROUPS[0]])))
     lines = [f"# Sweep `{spec['name']}`", "",
              f"{spec['search']} search, {spec['algo']} {spec['mode']} on {spec['scenario']}, "
              f"{spec['timesteps']} steps per trial, seeds {spec['seeds']}. Trials: "
@@ -702,7 +703,7 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
              "episode on any seed ranks below every one without). Ratios are the policy's RMSE over the "
              "law's, per joint, averaged over seeds.", "",
              "| rank | configuration | seeds | objective | score_vs_law [min, max] | score 0.1 Hz / 0.5 Hz / suite "
-             "| RMSE / law, 0.1 Hz (j1 j2 j3) | 0.5 Hz | suite | failed eps | worst ratio | steps | status |",
+             f"| RMSE / law, 0.1 Hz ({joints}) | 0.5 Hz | suite | failed eps | worst ratio | steps | status |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for i, c in enumerate(table["configs"], 1):
         status = ", ".join(f"{c['statuses'].count(s)} {s}" for s in sorted(set(c["statuses"])))
@@ -726,7 +727,7 @@ def markdown(spec: dict[str, Any], table: dict[str, Any], law: dict[str, list[fl
         lines.append(f"| {t['run']} | {t['seed']} | {t['status']} | {t['timesteps']} | "
                      + (f"{s['objective']:.4f} | {s['score_vs_law']:.4f}" if s else "- | -")
                      + f" | {(t['node_id'] or '-')[:8]} |")
-    lines += ["", "Law level (proposed, RMSE deg j1 j2 j3): " + "; ".join(
+    lines += ["", f"Law level (proposed, RMSE deg {joints}): " + "; ".join(
         f"{g}: " + " ".join(f"{v:.4f}" for v in law[g]) for g in CURVE_GROUPS),
         "", "Each run's `trial.json` holds the blf-train command that reproduces it; "
             "`blf-eval --agents runs/<run>` re-evaluates it."]

@@ -39,8 +39,10 @@ __all__ = ["PDGains", "CTCGains", "PD_GRAVITY", "pd_gravity", "pd_gravity_leso",
 class PDGains:
     """PD with gravity compensation: per-joint stiffness and damping. The defaults are the point the
     grid search chose for ``pd_gravity_leso`` (docs/gains/pd_gravity_leso); ``pd_gravity`` has its
-    own (:data:`PD_GRAVITY`)."""
+    own (:data:`PD_GRAVITY`). Both were chosen on the paper's 3-link arm: an arm of another number of
+    links (``nominal``) is given Kp and Kd (ValueError naming the gain otherwise)."""
 
+    # paper: the search's point on the paper's 3-link arm
     Kp: tuple[float, ...] = field(default=(6400.0, 6400.0, 1600.0), metadata={"unit": "N m/rad"})
     """Proportional gain per joint, N m/rad (each > 0)."""
     Kd: tuple[float, ...] = field(default=(10.0, 10.0, 2.5), metadata={"unit": "N m s/rad"})
@@ -60,11 +62,12 @@ class CTCGains:
     search met both conditions (docs/gains/computed_torque_leso): on the LESO only Kp = 102,400 1/s^2
     kept every bound on the selection episodes, at 1.32-1.75 times the law's RMS torque against the
     budget's 1.25; the defaults are the one of those with the least torque. The full-state law kept
-    the bounds at no point."""
+    the bounds at no point. The defaults are one number for every joint, so they hold for an arm of
+    any number of links."""
 
-    Kp: tuple[float, ...] = field(default=(102400.0, 102400.0, 102400.0), metadata={"unit": "1/s^2"})
+    Kp: tuple[float, ...] = field(default=102400.0, metadata={"unit": "1/s^2"})
     """Proportional gain of the commanded acceleration per joint, 1/s^2 (each > 0)."""
-    Kd: tuple[float, ...] = field(default=(80.0, 80.0, 80.0), metadata={"unit": "1/s"})
+    Kd: tuple[float, ...] = field(default=80.0, metadata={"unit": "1/s"})
     """Derivative gain of the commanded acceleration per joint, 1/s (each > 0); 2 sqrt(Kp) is
     critical damping of the nominal error dynamics."""
     nominal: ArmParams = field(default_factory=ArmParams)
@@ -131,8 +134,9 @@ def computed_torque_leso_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, Kp, Kd, nom
     _ctc(y, x2_hat, x3_hat, True, q_d, qd_d, qdd_d, Kp, Kd, nominal, work, u_law)
 
 
-PD_GRAVITY = {"Kp": (12800.0, 12800.0, 3200.0), "Kd": (40.0, 40.0, 10.0)}
-"""The full-state PD's gains, the grid search's choice (docs/gains/pd_gravity)."""
+PD_GRAVITY = {"Kp": (12800.0, 12800.0, 3200.0), "Kd": (40.0, 40.0, 10.0)}  # paper: its 3-link arm
+"""The full-state PD's gains, the grid search's choice (docs/gains/pd_gravity) on the paper's 3-link
+arm; an arm of another number of links is given Kp and Kd."""
 
 
 def pd_gravity(**kwargs: Any) -> Controller:

@@ -2,7 +2,9 @@
 
 ``bc``, ``lesobc``, ``proposed`` and ``leso`` are the factories registered under the entry-point
 groups ``blf_gym.controllers`` and ``blf_gym.observers``; keyword arguments override gains, e.g.
-``proposed(K2=(45, 45, 15), barrier_clip=0.9)``.
+``proposed(K2=(45, 45, 15), barrier_clip=0.9)``. The default gain vectors are the paper's, for its
+3-link arm; a law for an arm of n links is built with that arm as ``nominal`` and its gains, one
+number for every joint or n of them: ``proposed(nominal=arm, K1=20.0, K2=(45.0, 15.0))``.
 """
 
 from __future__ import annotations
@@ -27,12 +29,15 @@ __all__ = ["ControllerGains", "ObserverGains", "PROPOSED_TUNED", "controller_gai
 
 @dataclass(frozen=True)
 class ControllerGains:
-    """Backstepping gains (paper Table 2) and the barrier guard."""
+    """Backstepping gains (paper Table 2) and the barrier guard. K1 and K2 are one number for every
+    joint or one per joint; their defaults are the paper's, for its 3-link arm, so an arm of other
+    than 3 links (``nominal``) must be given both (ValueError naming the gain otherwise)."""
 
+    # paper: Table 2's diagonals, for the paper's 3-link arm
     K1: tuple[float, ...] = field(default=(20.0, 20.0, 15.0), metadata={"unit": "1/s"})
-    """Diagonal of K1 = 10 diag(2, 2, 1.5), 1/s (each > 0)."""
+    """Diagonal of K1 = 10 diag(2, 2, 1.5), 1/s (each > 0; one number: the same on every joint)."""
     K2: tuple[float, ...] = field(default=(45.0, 45.0, 15.0), metadata={"unit": "N m s/rad"})
-    """Diagonal of K2 = 30 diag(1.5, 1.5, 0.5), N m s/rad (each > 0)."""
+    """Diagonal of K2 = 30 diag(1.5, 1.5, 0.5), N m s/rad (each > 0; one number: the same on every joint)."""
     barrier_clip: float = field(default=0.95, metadata={"unit": "-"})
     """rho in (0, 1): the barrier term is evaluated with |e1| <= rho x bound. 0.95 keeps the
     closed loop integrable at h = 0.1 ms (docs/model.md section 5); raise it only with a smaller step."""
@@ -41,8 +46,8 @@ class ControllerGains:
 
     def __post_init__(self) -> None:
         n = self.nominal.n_links
-        object.__setattr__(self, "K1", positive_vector("ControllerGains", "K1", self.K1, n))
-        object.__setattr__(self, "K2", positive_vector("ControllerGains", "K2", self.K2, n))
+        object.__setattr__(self, "K1", positive_vector("ControllerGains", "K1", self.K1, n, one_for_all=True))
+        object.__setattr__(self, "K2", positive_vector("ControllerGains", "K2", self.K2, n, one_for_all=True))
         if not (math.isfinite(self.barrier_clip) and 0.0 < self.barrier_clip < 1.0):
             raise ValueError(f"ControllerGains.barrier_clip must be in (0, 1), got {self.barrier_clip!r}")
 
@@ -88,10 +93,11 @@ def proposed(**kwargs: Any) -> Controller:
                       filters={"barrier": barrier_filter, "cbf": cbf_filter})
 
 
-PROPOSED_TUNED = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}
+PROPOSED_TUNED = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}  # paper: tuned on its 3-link arm
 """The proposed law's gains chosen by the grid search that chose PPC's (docs/gains/proposed: K1 = 1280
 and K2 = 11.25 in the grid's scaling of the paper's vectors, the best of 40 points on the same 10
-selection episodes within the same torque budget, 1.25 times the paper-gain law's RMS torque)."""
+selection episodes within the same torque budget, 1.25 times the paper-gain law's RMS torque). Chosen
+on the paper's 3-link arm: an arm of another number of links is given K1 and K2."""
 
 
 def proposed_tuned(**kwargs: Any) -> Controller:

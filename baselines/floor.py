@@ -37,10 +37,12 @@ from .params import params_from, positive_vector
 __all__ = ["FloorParams", "FloorPolicy", "FLOOR_GAINS", "floor"]
 
 
-FLOOR_GAINS = {"Kp": (19600.0, 19600.0, 19600.0), "Kd": (112.0, 112.0, 112.0)}
+FLOOR_GAINS = {"Kp": 19600.0, "Kd": 112.0}
 """The floor's gains at the 10 ms period, the search's choice (docs/gains/floor: the best score within
 the torque budget over 45 points; at Kp 25,600 or Kd 140 and above the sampled loop goes unstable).
-No point of the grid keeps the bounds on every selection episode at this period."""
+No point of the grid keeps the bounds on every selection episode at this period. One number for
+every joint (:class:`FloorParams` makes it a tuple of one per joint), for an arm of any number of
+links."""
 
 
 @dataclass(frozen=True)

@@ -44,17 +44,24 @@ class LESO:
     """A thin stateful observer for sampled use (baseline policies, notebooks).
 
     Integrates :func:`leso_rhs` with the same ODE3 scheme as the closed loop, holding y and u over
-    each step of length ``dt``.
+    each step of length ``dt``. ``nominal`` is the arm's ``ArmParams.pack()`` (default the paper's
+    arm); the number of joints ``n`` is read from it (given, it must agree).
     """
 
-    def __init__(self, k0: float = 200.0, nominal: np.ndarray | None = None, n: int = 3) -> None:
+    def __init__(self, k0: float = 200.0, nominal: np.ndarray | None = None, n: int | None = None) -> None:
         from blf_gym.model.params import ArmParams
 
         if not (np.isfinite(k0) and k0 > 0):
             raise ValueError(f"LESO.k0 must be a finite number > 0, got {k0!r}")
         self.gains = np.array([float(k0)])
         self.nominal = ArmParams().pack() if nominal is None else np.asarray(nominal, dtype=float)
-        self.n = n
+        if self.nominal.ndim != 1 or self.nominal.size < 3 or self.nominal.size % 2 != 1:
+            raise ValueError(f"LESO.nominal must be an ArmParams.pack() (2 n + 1 entries), got shape "
+                             f"{self.nominal.shape}")
+        links = (self.nominal.size - 1) // 2
+        if n is not None and n != links:
+            raise ValueError(f"LESO.n = {n!r} but the nominal arm has {links} links")
+        n = self.n = links
         self.xhat = np.zeros(3 * n)
         self._work = np.empty(2 * n * n + 12 * n)
 

@@ -38,19 +38,16 @@ from .leso import leso_ode3
 
 __all__ = ["BaselinePolicy"]
 
-_N = 3
-_IDX = observation_index(_N)
-_OBS_DIM = len(observation_layout(_N))
-_Y, _QD_REF, _QD_D, _QDD_D = _IDX["y"], _IDX["q_d"], _IDX["qd_d"], _IDX["qdd_d"]
-_KA, _KB = _IDX["k_a"].start, _IDX["k_b"].start
-_KAD, _KBD = _IDX["k_a_rate"].start, _IDX["k_b_rate"].start
-_TIME = _IDX["time"].start
-_QD_TRUE = _IDX["qd"]
 _SQ_VEL, _SQ_ACC = SQUASH_VELOCITY, SQUASH_REF_ACCELERATION
 
 
 class BaselinePolicy:
-    """BC, LESOBC or the proposed law as a policy for the plain ``PlanarBLF-v0`` env."""
+    """BC, LESOBC or the proposed law as a policy for the plain ``PlanarBLF-v0`` env.
+
+    The number of joints n is the law's nominal arm's (``gains.nominal``; without ``gains``, the
+    plug-in's default, the paper's 3-link arm), and so are the observation's layout and the action's
+    n entries. For an arm of other than 3 links pass ``gains=ControllerGains(nominal=arm, K1=...,
+    K2=...)``; ``check_env`` refuses an env whose arm has another number of links."""
 
     def __init__(
         self,
@@ -84,15 +81,18 @@ class BaselinePolicy:
         if self.inner.states:
             raise ValueError(f"BaselinePolicy samples stateless laws; {controller!r} has states "
                              f"{list(self.inner.states)}: score it on the inner path (controller={controller!r})")
-        self._conn = connect(self.inner, make_observer("leso", k0=self.obs_gains.k0), _N)
+        n = self.n = self.inner.nominal.n_links
+        self._layout(n)
+        # the LESO models the law's arm (connect asks both blocks for one nominal model)
+        self._conn = connect(self.inner, make_observer("leso", k0=self.obs_gains.k0, nominal=self.inner.nominal), n)
         self.bounds = bounds or BoundParams()
         self.dt = float(dt)
         self.max_torque = float(max_torque)
         self._nominal = self.inner.nominal.pack()
         self._k0 = np.array([self.obs_gains.k0])
-        self._nom = np.zeros(nominal_length(_N))
-        self._nom[model_length(_N) : model_length(_N) + self._nominal.size] = self._nominal
-        self._work = np.zeros(work_length(_N))
+        self._nom = np.zeros(nominal_length(n))
+        self._nom[model_length(n) : model_length(n) + self._nominal.size] = self._nominal
+        self._work = np.zeros(work_length(n))
         self._cout = np.zeros(self._conn.n_out)
         self._none = np.zeros(0)
         self._xhat: np.ndarray | None = None
@@ -102,12 +102,26 @@ class BaselinePolicy:
         if env is not None:
             self.check_env(env)
 
+    def _layout(self, n: int) -> None:
+        """Where the law's inputs sit in the observation of an arm of ``n`` links."""
+        idx = observation_index(n)
+        self._obs_dim = len(observation_layout(n))
+        self._y, self._qd_ref, self._qd_d, self._qdd_d = idx["y"], idx["q_d"], idx["qd_d"], idx["qdd_d"]
+        self._ka, self._kb = idx["k_a"].start, idx["k_b"].start
+        self._kad, self._kbd = idx["k_a_rate"].start, idx["k_b_rate"].start
+        self._time = idx["time"].start
+        self._qd_true = idx["qd"]
+
     def check_env(self, env: Any) -> None:
         """Refuse an env this policy cannot drive: residual mode, a ``control_period`` other than
-        ``dt``, or another torque limit. Accepts a Gymnasium env (wrapped or not) or vector env."""
+        ``dt``, another torque limit, or an arm of another number of links than the law's. Accepts a
+        Gymnasium env (wrapped or not) or vector env."""
         core = getattr(getattr(env, "unwrapped", env), "core", None)
         if core is None:
             raise ValueError(f"BaselinePolicy.check_env: {type(env).__name__} is not a PlanarBLF env")
+        if core.n != self.n:
+            raise ValueError(f"BaselinePolicy's law models an arm of {self.n} links, the env's has {core.n}: pass "
+                             "gains=ControllerGains(nominal=<the env's arm>, K1=..., K2=...)")
         if core.residual:
             raise ValueError("BaselinePolicy drives the plain env (its action is the whole torque); this env is "
                              f"in residual mode over {core.controller.name!r}. Use gym.make('PlanarBLF-v0', ...)")
@@ -124,42 +138,42 @@ class BaselinePolicy:
     def reset(self, num_envs: int = 1) -> None:
         self._xhat = None
         self._y_prev = None
-        self._u_prev = np.zeros((num_envs, _N))
+        self._u_prev = np.zeros((num_envs, self.n))
 
     def _laws(self, obs: np.ndarray, starts: np.ndarray) -> np.ndarray:
-        N = obs.shape[0]
+        N, n = obs.shape[0], self.n
         if self._xhat is None or self._xhat.shape[0] != N:
             self._xhat = np.zeros((N, self._conn.n_obs))
-            self._y_prev = obs[:, _Y].copy()
-            self._u_prev = np.zeros((N, _N))
+            self._y_prev = obs[:, self._y].copy()
+            self._u_prev = np.zeros((N, n))
             starts = np.ones(N, dtype=bool)
-        u = np.zeros((N, _N))
-        ref = np.empty(len(REFERENCE_SIGNALS) * _N)
+        u = np.zeros((N, n))
+        ref = np.empty(len(REFERENCE_SIGNALS) * n)
         bnd = np.empty(BOUND_LEN)
         for i in range(N):
-            y = obs[i, _Y].astype(np.float64)
+            y = obs[i, self._y].astype(np.float64)
             if starts[i]:
                 self._xhat[i] = 0.0
-                self._xhat[i, :_N] = y
+                self._xhat[i, :n] = y
                 self._u_prev[i] = 0.0
             else:
                 # the observer integrates the last period with the measurement and torque held
                 self._xhat[i] = leso_ode3(self._xhat[i], self._y_prev[i], self._u_prev[i],
                                           self._nominal, self._k0, self.dt, self._work)
-            ref[:_N] = obs[i, _QD_REF]
-            ref[_N : 2 * _N] = unsquash(obs[i, _QD_D].astype(np.float64), _SQ_VEL)
-            ref[2 * _N :] = unsquash(obs[i, _QDD_D].astype(np.float64), _SQ_ACC)
-            ka, kb = float(obs[i, _KA]), float(obs[i, _KB])
-            kad, kbd = float(obs[i, _KAD]), float(obs[i, _KBD])
+            ref[:n] = obs[i, self._qd_ref]
+            ref[n : 2 * n] = unsquash(obs[i, self._qd_d].astype(np.float64), _SQ_VEL)
+            ref[2 * n :] = unsquash(obs[i, self._qdd_d].astype(np.float64), _SQ_ACC)
+            ka, kb = float(obs[i, self._ka]), float(obs[i, self._kb])
+            kad, kbd = float(obs[i, self._kad]), float(obs[i, self._kbd])
             r = self.bounds.decay_rate  # exponential bounds: k'' = -r k'
             bnd[[KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT]] = (ka, kad, -r * kad, kb, kbd, -r * kbd)
             if self.inner.full_state:
-                if obs.shape[1] < _QD_TRUE.stop:
+                if obs.shape[1] < self._qd_true.stop:
                     raise ValueError(f"{self.name} reads the true velocity (a full-state law): make the env with "
                                      "privileged=True")
-                qd = unsquash(obs[i, _QD_TRUE].astype(np.float64), _SQ_VEL)
+                qd = unsquash(obs[i, self._qd_true].astype(np.float64), _SQ_VEL)
             else:
-                qd = np.zeros(_N)
+                qd = np.zeros(n)
             nominal_model_into(y, self._nominal, self._nom, self._work)
             c = self._conn
             # the law's output alone, through the generated glue's named signals (blf_gym.plugins.blocks;
@@ -168,7 +182,7 @@ class BaselinePolicy:
                           og=self._k0, cg=self.inner.gains, fg=self._none, u=self._none, cout=self._cout,
                           r=self._none, fout=self._none, umax=self.max_torque, dxo=self._none, dxc=self._none,
                           work=self._work)
-            u[i] = np.clip(self._cout[:_N], -self.max_torque, self.max_torque)
+            u[i] = np.clip(self._cout[:n], -self.max_torque, self.max_torque)
             self._y_prev[i] = y
             self._u_prev[i] = u[i]
         return u
@@ -191,12 +205,13 @@ class BaselinePolicy:
         obs = np.asarray(observation)
         single = obs.ndim == 1
         batch = obs[None] if single else obs
-        if batch.ndim != 2 or batch.shape[1] < _OBS_DIM:
-            raise ValueError(f"expected PlanarBLF observations of shape ({_OBS_DIM},) or (N, {_OBS_DIM}+), got {obs.shape}")
+        if batch.ndim != 2 or batch.shape[1] < self._obs_dim:
+            raise ValueError(f"expected PlanarBLF observations of an arm of {self.n} links, of shape ({self._obs_dim},) "
+                             f"or (N, {self._obs_dim}+), got {obs.shape}")
         starts = (np.zeros(batch.shape[0], dtype=bool) if episode_start is None
                   else np.asarray(episode_start, dtype=bool).reshape(-1))
         # an observation at t = 0 starts an episode even if the caller does not say so
-        starts = starts | (batch[:, _TIME] == 0.0)
+        starts = starts | (batch[:, self._time] == 0.0)
         u = self._laws(batch, starts)
         actions = (u / self.max_torque).astype(np.float32)
         return (actions[0] if single else actions), state

@@ -38,11 +38,12 @@ from .controllers import controller_gains
 
 __all__ = ["ppc", "ppc_output", "PPC_GAINS"]
 
-PPC_GAINS: dict[str, Any] = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}
+PPC_GAINS: dict[str, Any] = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}  # paper: its 3-link arm
 """The PPC's gains where they differ from :class:`baselines.controllers.ControllerGains`' defaults
 (the paper's K1, K2 and the guard): the paper's K1 times 64 and K2 times 1/4, chosen by
 ``python -m baselines.gains`` on the presets and training-suite seeds 0-7 only, under a torque
-budget of 1.25 times the law's RMS torque (docs/gains/ppc/gains.md, docs/model.md section 12)."""
+budget of 1.25 times the law's RMS torque (docs/gains/ppc/gains.md, docs/model.md section 12). Chosen
+on the paper's 3-link arm: an arm of another number of links (``nominal``) is given K1 and K2."""
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -28,12 +28,46 @@ def _rows(header: tuple[str, ...], rows: list[tuple[Any, ...]], indent: str = ""
     return "\n".join(indent + line for line in out)
 
 
-def observation_table(privileged: bool = True, indent: str = "") -> str:
+def _default_links() -> int:
+    """Links of the default scenario's arm (the paper's: 3), which the docstring's tables show."""
+    from blf_gym.model.params import preset
+
+    return preset(_defaults()["scenario"]).arm.n_links
+
+
+def observation_table(privileged: bool = True, indent: str = "", n: int | None = None) -> str:
     """The default observation's entries (index, name, unit, box), a Markdown table made from
-    :data:`blf_gym.envs.observation.OBSERVATION` for the 3-link arm."""
+    :data:`blf_gym.envs.observation.OBSERVATION` for an arm of ``n`` links (default: the default
+    scenario's, the paper's 3-link arm)."""
+    n = _default_links() if n is None else n
     rows = [(i, name, unit, f"{lo:g}", f"{hi:g}") for i, (name, unit, lo, hi)
-            in enumerate(observation_layout(3, privileged))]
+            in enumerate(observation_layout(n, privileged))]
     return _rows(("index", "observation", "unit", "min", "max"), rows, indent)
+
+
+def _spaces_text() -> str:
+    """The docstring's action and observation spaces, their sizes as functions of the number of
+    links n and at the default scenario's arm (from the table, so they cannot drift)."""
+    n = _default_links()
+    fixed, priv_fixed = len(observation_layout(0, False)), len(observation_layout(0, True))
+    per, priv_per = len(observation_layout(1, False)) - fixed, len(observation_layout(1, True)) - priv_fixed
+    base, full = len(observation_layout(n, False)), len(observation_layout(n, True))
+    return f"""    ## Action Space
+    ``Box(-1, 1, (n,), float32)``, one entry per joint: n is the scenario's number of links (3 for
+    the paper's arm, the default). Non-finite actions or a wrong shape raise ``ValueError``; finite
+    actions are clipped to [-1, 1].
+
+    ## Observation Space
+    ``Box(low, high, ({per} n + {fixed},), float32)``, ({base},) for the paper's {n}-link arm
+    (``{priv_per} n + {priv_fixed}``, {full}, with ``privileged=True``). Unbounded quantities are
+    squashed as c tanh(x / c) so every observation lies inside the box. The entries for the
+    paper's arm (an arm of n links has n entries in each per-joint group):"""
+
+
+def _privileged_entries() -> str:
+    """The indices of the privileged entries at the default scenario's arm, "first-last"."""
+    n = _default_links()
+    return f"{len(observation_layout(n, False))}-{len(observation_layout(n, True)) - 1}"
 
 
 def _default_text(v: Any) -> str:
@@ -146,17 +180,11 @@ class PlanarBLFEnv(gym.Env):
       ``u = u_law + residual_scale * a``, before the actuator limit and the dead-zone. The
       observer, observations, info and metrics all use that applied u.
 
-    ## Action Space
-    ``Box(-1, 1, (3,), float32)``, one entry per joint. Non-finite actions or a wrong shape raise
-    ``ValueError``; finite actions are clipped to [-1, 1].
-
-    ## Observation Space
-    ``Box(low, high, (31,), float32)`` (37 with ``privileged=True``). Unbounded quantities are
-    squashed as c tanh(x / c) so every observation lies inside the box:
+{_spaces_text()}
 
 {observation_table(True, '    ')}
 
-    Entries 31-36 exist only with ``privileged=True``. The measured angles include the optional
+    Entries {_privileged_entries()} exist only with ``privileged=True``. The measured angles include the optional
     noise (``angle_noise_std``, a fresh draw for the observation).
 
     ## Rewards

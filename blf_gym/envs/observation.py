@@ -145,9 +145,10 @@ def groups(privileged: bool, extras: Sequence[str]) -> list[Entry]:
     return rows + [by[g] for g in extras]
 
 
-def observation_index(n: int = 3, privileged: bool = True, extras: Sequence[str] = ()) -> dict[str, slice]:
-    """Where each group of :data:`OBSERVATION` sits in the observation vector (with the privileged
-    groups unless ``privileged=False``, and the optional ones named in ``extras``)."""
+def observation_index(n: int, privileged: bool = True, extras: Sequence[str] = ()) -> dict[str, slice]:
+    """Where each group of :data:`OBSERVATION` sits in the observation vector of an arm of ``n``
+    links (3 for the paper's arm; an env's ``core.n``), with the privileged groups unless
+    ``privileged=False``, and the optional ones named in ``extras``."""
     out, o = {}, 0
     for e in groups(privileged, extras):
         m = (n if e.count is None else e.count) * max(e.points, 1)
@@ -156,8 +157,9 @@ def observation_index(n: int = 3, privileged: bool = True, extras: Sequence[str]
     return out
 
 
-def observation_layout(n: int = 3, privileged: bool = False, extras: Sequence[str] = ()) -> list[tuple[str, str, float, float]]:
-    """(name, unit, low, high) of every observation entry, in order."""
+def observation_layout(n: int, privileged: bool = False, extras: Sequence[str] = ()) -> list[tuple[str, str, float, float]]:
+    """(name, unit, low, high) of every observation entry of an arm of ``n`` links (3 for the
+    paper's arm), in order."""
     rows: list[tuple[str, str, float, float]] = []
     for e in groups(privileged, extras):
         for k in range(1, e.points + 1) if e.points else [0]:

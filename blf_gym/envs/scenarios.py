@@ -229,13 +229,14 @@ def _knob(kind: str, name: str, value: Any, strict: bool, index: int | None = No
     return check_real("", label, value, lo, lo_open=lo_open, unit=knob.unit)
 
 
-def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
+def check_variations(variations: Any, n_links: int | None = None, strict: bool = True,
                      kind: str = "variation") -> dict[str, Any]:
     """A validated copy of ``variations`` (a mapping of knobs of :data:`VARIATIONS` to values),
-    each value a float (``initial_error``: a tuple of ``n_links`` floats). ValueError naming the
-    knob and its accepted range otherwise: every value must be a finite real number (not a bool
-    or a string) inside :data:`SAFE_RANGES` when ``strict``. ``kind`` names the knobs in messages
-    ("variation", "reset option")."""
+    each value a float (``initial_error``: a tuple of ``n_links`` floats, the arm's number of
+    links, which a per-joint knob needs). ValueError naming the knob and its accepted range
+    otherwise: every value must be a finite real number (not a bool or a string) inside
+    :data:`SAFE_RANGES` when ``strict``. ``kind`` names the knobs in messages ("variation",
+    "reset option")."""
     if not isinstance(variations, Mapping):
         raise ValueError(f"{kind}s must be a mapping (dict) from names in {list(VARIATIONS)} to "
                          f"numbers, got {variations!r}")
@@ -249,6 +250,9 @@ def check_variations(variations: Any, n_links: int = 3, strict: bool = True,
         if not knob.per_joint:
             out[name] = _knob(kind, name, value, strict)
             continue
+        if n_links is None:
+            raise ValueError(f"check_variations: the per-joint {kind} {name!r} needs n_links, the arm's number "
+                             "of links")
         if is_real(value):
             out[name] = (_knob(kind, name, value, strict),) * n_links
             continue

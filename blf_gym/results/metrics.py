@@ -144,6 +144,16 @@ class EpisodeStats(NamedTuple):
     n_joints: int
 
 
+def _joints(a: dict[str, np.ndarray]) -> int:
+    """The number of joints of an episode's signals: the width of its joint signals, (samples, n)
+    (an episode without samples keeps that shape, (0, n)). ValueError if none is two-dimensional."""
+    for k in ("e1", "u", "saturated"):
+        if a[k].ndim == 2:
+            return int(a[k].shape[1])
+    raise ValueError("episode_stats: the joint signals e1, u and saturated must be (samples, n joints), got shapes "
+                     f"{[a[k].shape for k in ('e1', 'u', 'saturated')]}")
+
+
 def episode_stats(traj: Any) -> EpisodeStats:
     """A :class:`blf_gym.kernel.simulate.Trajectory` (or a dict of its signals) as :class:`EpisodeStats`;
     an ``EpisodeStats`` is returned as it is."""
@@ -151,7 +161,7 @@ def episode_stats(traj: Any) -> EpisodeStats:
         return traj
     a, mask, ep_rmse, ep_viol, ep_failed = _episode(traj)
     e1, ka, kb, u = a["e1"], a["k_a"], a["k_b"], a["u"]
-    n_joints = e1.shape[1] if e1.ndim == 2 else 3
+    n_joints = _joints(a)
     diverged = bool(getattr(traj, "diverged", False))
     if mask is None:
         return EpisodeStats(0, None, None, None, None, None, None, None, None, 0, True, True, None, n_joints)
@@ -324,7 +334,9 @@ def _pooled_rmse(stats: Sequence[Any]) -> list[float] | None:
 
 
 def _csv_text(records: Sequence[dict[str, Any]]) -> str:
-    n = max((len(r["rmse_deg"]) for r in records), default=3)
+    # the joints' columns: as many as the records' joints (a file without records gets the paper's
+    # arm's three, as it always did)
+    n = max((len(r["rmse_deg"]) for r in records), default=3)  # paper: no record to read n from
     import json
 
     fields_ = [f for f in RECORD_FIELDS if f not in PER_EPISODE] + list(REFERENCE_FIELDS[:2]) + list(PROVENANCE_FIELDS)
