@@ -30,7 +30,7 @@ from blf_gym.plugins import blocks
 # here as the reference the key is checked against, not read from the key's own code.
 KERNEL_MODULES = ("jit.vmath", "model.params", "model.bounds", "model.dynamics", "model.reference", "kernel.reward",
                   "kernel.status", "model.uncertainty", "jit.views", "plugins.blocks", "kernel.simulate",
-                  "plugins.registry", "results.io", "jit.sources")
+                  "plugins.registry", "results.io", "jit.sources", "jit.layout")
 # Modules the kernel does not compile: an edit to them must not rebuild it.
 NOT_KERNEL = ("envs.env", "envs.envcore", "envs.vector", "envs.scenarios", "results.metrics", "envs.render",
               "envs.observation", "envs.safety", "envs.levels", "envs.lookahead", "__init__")

@@ -12,6 +12,7 @@ import numpy as np
 from numba import njit
 from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
+from blf_gym.jit.layout import LAST, MARGINS, REF, STATE
 from blf_gym.model.bounds import BOUND_LEN, KA, KB
 from blf_gym.plugins.blocks import NO_CONTROLLER, Controller, Observer, ResidualFilter
 from blf_gym.plugins.registry import available_controllers, available_observers, make_controller, make_observer
@@ -27,7 +28,7 @@ from blf_gym.envs.lookahead import design_scenario, lookahead_gate, predicted_ga
 from blf_gym.envs.scenarios import (SUITES, VARIATIONS, apply_variations, check_variations, resolve_scenario, sample_suite,
                         widen_bounds)
 from blf_gym.kernel.simulate import CHANNELS, ClosedLoop, divergence_message
-from blf_gym.kernel.status import (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
+from blf_gym.kernel.status import (N_LAST, ST_ASSUMPTION_FAILURES, ST_DIVERGED,
                      ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_VIOL_SAMPLES, ST_VIOL_STEPS)
 
 __all__ = ["RewardWeights", "EnvCore", "ARGUMENTS", "INFO_KEYS", "Argument", "InfoKey", "MAX_ARMS", "MAX_BOUND_SCALE", "MAX_REFERENCE_BYTES", "OBSERVATION", "observation_layout",
@@ -697,7 +698,7 @@ class EnvCore:
                                             N_LAST * self.n + self.loop.connection.n_out + off + m))
                                for name, (off, m) in self.loop.connection.fout_offsets.items()]
         n = self.n
-        self._last_slices = tuple(slice(c * n, (c + 1) * n) for c in (LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT))
+        self._last_slices = tuple(LAST.slice(c, n) for c in ("u", "u_law", "x3", "x3_hat"))
         # the law's outputs besides u_law (already info["u_law"]), for info["controller_outputs"]
         self._out_slices = [(name, slice(N_LAST * self.n + off, N_LAST * self.n + off + m))
                             for name, (off, m) in self.loop.connection.out_offsets.items() if name != "u_law"]
@@ -737,7 +738,7 @@ class EnvCore:
         self.rngs: list[np.random.Generator] = [np.random.default_rng() for _ in range(N)]
         self.steps = np.zeros(N, dtype=np.int64)
         self.done = np.zeros(N, dtype=bool)
-        self._ref = np.zeros((N, 3 * n))
+        self._ref = np.zeros((N, REF.length(n)))
         self._bnd = np.zeros((N, BOUND_LEN))
         self._obs_noise = np.zeros((N, n))
         self._record = (_Record(N, self.samples_per_period, n, self.max_episode_steps, len(self.record_channels))
@@ -1347,18 +1348,18 @@ class EnvCore:
                 if which is None or i in which:
                     noise[i] = self.rngs[i].standard_normal(n) * self._stds[i]
         obs = np.empty((N, self.obs_dim), dtype=np.float32)
-        state = np.empty((N, 3 * n))
+        state = np.empty((N, MARGINS.length(n)))
         observe_batch(X, t, b.ref, b.bnd, b.plant, self.loop.last, noise, self._durations, self._umax, self._plan,
                       self._plan_scale, self._box64[0], self._box64[1], obs, self._ref, self._bnd, state)
         if info is not None:
             bnd = self._bnd.copy()
             info["time"] = t
-            info["e1"] = state[:, :n]
+            info["e1"] = state[:, MARGINS.slice("e1", n)]
             info["k_a"] = bnd[:, KA]
             info["k_b"] = bnd[:, KB]
             # g(t, q) <= 0 convention: positive means the bound is broken
-            info["g_upper"] = state[:, n : 2 * n]
-            info["g_lower"] = state[:, 2 * n :]
+            info["g_upper"] = state[:, MARGINS.slice("g_upper", n)]
+            info["g_lower"] = state[:, MARGINS.slice("g_lower", n)]
             if self.privileged:
-                info["qd"] = X[:, n : 2 * n].copy()
+                info["qd"] = X[:, STATE.slice("qd", n)].copy()
         return obs

@@ -16,6 +16,8 @@ import numpy as np
 from numba import njit
 from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
+from blf_gym.jit.layout import MARGINS, REF, STATE
+from blf_gym.jit.layout import at as offset_at
 from blf_gym.model.bounds import BOUND_SIGNALS, KA, KB, bounds_into
 from blf_gym.model.params import REFERENCE_PACK
 from blf_gym.model.reference import reference_into
@@ -220,12 +222,16 @@ def plan_row(entry: Entry, n: int, observer_part, controller_part, last_width: i
     return frm, col, want
 
 
+_S_Q, _R_Q = STATE.start("q"), REF.start("q_d")
+_M_E1, _M_UP, _M_LO = (MARGINS.start(k) for k in ("e1", "g_upper", "g_lower"))
+
+
 @njit(cache=True, error_model="numpy")
 def observe_batch(X, t, rp, bp, plant, last, noise, dur, umax, plan, scale, low, high, obs, ref, bnd, state):
     """Fill ``obs`` (N, obs_dim) float32 from the plan of :data:`OBSERVATION` (rows [where from,
     column, entries, first entry, preview points], with each row's ``scale``; ``low`` and ``high``
     the box per entry), ``ref`` and ``bnd`` with the reference and bounds at ``t``, and ``state``
-    (N, 3n) with per joint [e1, g_upper, g_lower] in the g <= 0 convention (positive means the bound
+    (N, 3n: :data:`blf_gym.jit.layout.MARGINS`) with per joint [e1, g_upper, g_lower] in the g <= 0 convention (positive means the bound
     is broken). One compiled call per agent step."""
     N = X.shape[0]
     n = noise.shape[1]
@@ -279,7 +285,7 @@ def observe_batch(X, t, rp, bp, plant, last, noise, dur, umax, plan, scale, low,
                 v = min(max(v, low[k]), high[k])
                 obs[b, k] = min(max(np.float32(v), np.float32(low[k])), np.float32(high[k]))
         for j in range(n):
-            ej = X[b, j] - ref[b, j]
-            state[b, j] = ej
-            state[b, n + j] = ej - ka
-            state[b, 2 * n + j] = -kb - ej
+            ej = X[b, offset_at(_S_Q, n) + j] - ref[b, offset_at(_R_Q, n) + j]
+            state[b, offset_at(_M_E1, n) + j] = ej
+            state[b, offset_at(_M_UP, n) + j] = ej - ka
+            state[b, offset_at(_M_LO, n) + j] = -kb - ej

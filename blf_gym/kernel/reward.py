@@ -19,6 +19,7 @@ import numpy as np
 from numba import njit
 from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
 
+from blf_gym.jit.layout import SUM_HEAD
 from blf_gym.model.bounds import KA, KB
 from blf_gym.model.params import check_bool, check_real
 from blf_gym.kernel.status import ST_DIVERGED, ST_VIOL_SAMPLES, ST_VIOL_STEPS
@@ -85,12 +86,12 @@ TERMS: tuple[RewardTerm, ...] = (
 TRACKING = 0
 """The row of the tracking term, whose ``relative`` form compares with the law."""
 
-SUM_COLUMNS = ("error_estimate_max", "samples") + tuple(f"sum_{t.name}" for t in TERMS)
+SUM_COLUMNS = SUM_HEAD + tuple(f"sum_{t.name}" for t in TERMS)
 """Per-arm float sums of one kernel call: the largest ODE3 error estimate, the number of 1 ms
 samples, each term's sum over the samples (:data:`TERMS`); then, per joint, the sum over samples
 of e1^2 (rad^2)."""
-SUM_ERR_MAX, SUM_SAMPLES = 0, 1
-SUM_TERM0 = 2
+SUM_ERR_MAX, SUM_SAMPLES = (SUM_COLUMNS.index(c) for c in ("error_estimate_max", "samples"))
+SUM_TERM0 = len(SUM_HEAD)
 """The column of the first term's sum."""
 SUM_E2_JOINT = len(SUM_COLUMNS)
 

@@ -41,11 +41,12 @@ from numba.np.arrayobj import populate_array
 
 from blf_gym.jit import vmath
 from blf_gym.model.bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
-from blf_gym.plugins.blocks import (Connection, Controller, Observer, ResidualFilter, connect, model_length, nominal_length,
+from blf_gym.plugins.blocks import (Connection, Controller, Observer, ResidualFilter, connect, nominal_length,
                      nominal_terms_into, work_length)
 from blf_gym.plugins.registry import make_controller, make_observer
+from blf_gym.jit.layout import (ARM, BOUNDS, CHANNELS, EXP_ARGS, FLAGS, KERNEL_WORK, NOMINAL, PENDING, PLANT, PLANT_TAIL,
+                                RECORD, REF, REFERENCE, STATE, TAIL, TRIG, TRIG_ARGS, at, block_layout, part)
 from blf_gym.model.dynamics import (
-    WORK_PER_LINK,
     abs_trig_into,
     ldl_factor_into,
     ldl_solve_factored,
@@ -55,7 +56,7 @@ from blf_gym.model.dynamics import (
     mass_matrix_into,
     wrench_torque_into,
 )
-from blf_gym.model.params import BOUNDS_PACK, PLANT_TAIL, Scenario, check_int, plant_length, reference_length, usable_cores
+from blf_gym.model.params import Scenario, check_int, usable_cores
 from blf_gym.kernel.reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
 from blf_gym.jit.views import fixed
 from blf_gym.kernel.status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
@@ -74,35 +75,43 @@ __all__ = [
     "simulate_batch",
 ]
 
-# Recorded channels, each an n-vector per 1 ms sample (the time channel repeats t).
-CHANNELS = (
-    "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated",
-    "x3", "x3_hat", "x2_hat", "x1_hat", "y",
-)
 N_CHANNELS = len(CHANNELS)
-# Each channel's row in a record, from CHANNELS (the kernel freezes these into its code).
+# Each channel's row in a record (blf_gym.jit.layout.RECORD; the kernel freezes these into its code).
 (_CH_T, _CH_Q, _CH_QD, _CH_QREF, _CH_QDREF, _CH_E1, _CH_KA, _CH_KB, _CH_U, _CH_HU, _CH_ULAW, _CH_SAT, _CH_X3,
- _CH_X3HAT, _CH_X2HAT, _CH_X1HAT, _CH_Y) = (CHANNELS.index(c) for c in (
+ _CH_X3HAT, _CH_X2HAT, _CH_X1HAT, _CH_Y) = (RECORD.index(c) for c in (
     "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated", "x3", "x3_hat",
     "x2_hat", "x1_hat", "y"))
 
-# Offsets after the arm block (2n+1) in the packed plant vector, read from its one declaration.
-_T = {name: i for i, name in enumerate(PLANT_TAIL)}
-_VISC, _COUL, _PSI = _T["viscous"], _T["coulomb"], _T["tanh_slope"]
-_HR, _HL, _TR, _TL = _T["slope_right"], _T["slope_left"], _T["break_right"], _T["break_left"]
-_FX, _MZ, _ONSET = _T["f_x"], _T["moment"], _T["onset"]
-_UMAX, _DIVLIM, _ERR_RTOL, _ERR_ATOL = _T["max_torque"], _T["divergence_limit"], _T["error_rtol"], _T["error_atol"]
-_UNSTABLE_STEPS = _T["unstable_steps"]
+# Offsets within the plant's scalars (the tail after the arm) and, as triples for at(), in the
+# packed plant vector: blf_gym.jit.layout.PLANT.
+_VISC, _COUL, _PSI = (TAIL.index(k) for k in ("viscous", "coulomb", "tanh_slope"))
+_HR, _HL, _TR, _TL = (TAIL.index(k) for k in ("slope_right", "slope_left", "break_right", "break_left"))
+_P_ARM, _P_TAIL, _SIZE_ARM, _SIZE_TAIL = PLANT.start("lengths"), PLANT.start(PLANT_TAIL[0]), ARM.total, TAIL.total
+_P_FX, _P_MZ, _P_ONSET = PLANT.start("f_x"), PLANT.start("moment"), PLANT.start("onset")
+_P_UMAX, _P_DIVLIM, _P_RTOL, _P_ATOL = (PLANT.start(k) for k in ("max_torque", "divergence_limit", "error_rtol",
+                                                                  "error_atol"))
+_P_UNSTABLE = PLANT.start("unstable_steps")
+# the state's head, the reference signal, the pending sample, the nominal signal, the kernel's work
+_S_Q, _S_QD, _S_OBS, _SIZE_N = STATE.start("q"), STATE.start("qd"), STATE.total, STATE.size("q")
+_R_Q, _R_QD = REF.start("q_d"), REF.start("qd_d")
+_PD_Q, _PD_QD, _PD_QDD, _PD_U = (PENDING.start(k) for k in ("q", "qd", "qdd", "u"))
+_NOM_M, _NOM_G, _NOM_TRIG, _NOM_L, _NOM_ARM = (NOMINAL.start(k) for k in ("M", "G", "trig", "L", "arm"))
+_KW_TRIG, _KW_C, _KW_G, _KW_JF, _KW_RHS, _KW_NOM = (KERNEL_WORK.start(k) for k in (
+    "trig", "coriolis", "gravity", "wrench", "rhs", "nominal"))
+_SIZE_TRIG, _SIZE_KW_NOM = TRIG.total, KERNEL_WORK.size("nominal")
+_T_COS, _T_SIN = TRIG.start("cos"), TRIG.start("sin")
+_A_PLANT, _A_MEAS, _A_REF, _A_END = (*(TRIG_ARGS.start(k) for k in ("plant", "measured", "reference")), TRIG_ARGS.total)
+_E_FRIC, _E_BOUNDS, _E_END = EXP_ARGS.start("friction"), EXP_ARGS.start("bounds"), EXP_ARGS.total
 
 
 @njit(cache=True, error_model="numpy")
 def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
     """x3 = qdd - F_nom(q, qd) - M_nom^-1 u = M_nom^-1 (M_nom qdd + C_nom qd + G_nom - u)."""
     n = q.shape[0]
-    trig = work[4 * n : 6 * n]
-    c = work[6 * n : 7 * n]
-    g = work[7 * n : 8 * n]
-    r = work[8 * n : 9 * n]
+    trig = part(work, _KW_TRIG, _SIZE_TRIG, n)
+    c = part(work, _KW_C, _SIZE_N, n)
+    g = part(work, _KW_G, _SIZE_N, n)
+    r = part(work, _KW_RHS, _SIZE_N, n)
     abs_trig_into(q, trig)
     mass_matrix_into(trig, nominal, M, work)
     coriolis_times_into(trig, qd, qd, nominal, c, work)
@@ -187,11 +196,11 @@ def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3, o1, o2, o3):
     n = y.shape[0]
     for i in range(n):
         r[_CH_T, i] = t
-        r[_CH_Q, i] = x[i]
-        r[_CH_QD, i] = x[n + i]
-        r[_CH_QREF, i] = ref[i]
-        r[_CH_QDREF, i] = ref[n + i]
-        r[_CH_E1, i] = x[i] - ref[i]
+        r[_CH_Q, i] = x[at(_S_Q, n) + i]
+        r[_CH_QD, i] = x[at(_S_QD, n) + i]
+        r[_CH_QREF, i] = ref[at(_R_Q, n) + i]
+        r[_CH_QDREF, i] = ref[at(_R_QD, n) + i]
+        r[_CH_E1, i] = x[at(_S_Q, n) + i] - ref[at(_R_Q, n) + i]
         r[_CH_KA, i] = bnd[KA]
         r[_CH_KB, i] = bnd[KB]
         r[_CH_U, i] = u[i]
@@ -294,34 +303,36 @@ def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, 
         if y[i] != q[i]:
             same = False
     if one_lane:
+        a_pl, a_me, a_rf, e_fr, e_bd = at(_A_PLANT, n), at(_A_MEAS, n), at(_A_REF, n), at(_E_FRIC, n), at(_E_BOUNDS, n)
+        c0, s0 = at(_T_COS, n), at(_T_SIN, n)
         th = 0.0
         thy = 0.0
         for j in range(n):
             th += q[j]
             thy += y[j]
-            ang[j] = th
-            ang[n + j] = thy
-        ang[2 * n] = reference_angle(ts, rp)
-        for i in range(2 * n + 1, ang.shape[0]):
+            ang[a_pl + j] = th
+            ang[a_me + j] = thy
+        ang[a_rf] = reference_angle(ts, rp)
+        for i in range(at(_A_END, n), ang.shape[0]):
             ang[i] = 0.0
         for i in range(ang.shape[0]):
             sn[i], cs[i] = vmath.sincos(ang[i])
         for j in range(n):
-            trig[j] = cs[j]
-            trig[n + j] = sn[j]
-            ntrig[j] = cs[n + j]
-            ntrig[n + j] = sn[n + j]
-        reference_from(sn[2 * n], cs[2 * n], rp, arm, ref)
+            trig[c0 + j] = cs[a_pl + j]
+            trig[s0 + j] = sn[a_pl + j]
+            ntrig[c0 + j] = cs[a_me + j]
+            ntrig[s0 + j] = sn[a_me + j]
+        reference_from(sn[a_rf], cs[a_rf], rp, arm, ref)
         for i in range(n):
-            ex[i] = friction_exponent(qd[i], tail[_PSI])
-        ex[n] = bounds_exponent(ts, bp)
-        for i in range(n + 1, ex.shape[0]):
+            ex[e_fr + i] = friction_exponent(qd[i], tail[_PSI])
+        ex[e_bd] = bounds_exponent(ts, bp)
+        for i in range(at(_E_END, n), ex.shape[0]):
             ex[i] = 0.0
         for i in range(ex.shape[0]):
             ev[i] = vmath.exp(ex[i])
-        bounds_from(ev[n], bp, bnd)
+        bounds_from(ev[e_bd], bp, bnd)
         for i in range(n):
-            fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[i])
+            fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[e_fr + i])
     else:
         reference_into(ts, rp, arm, ref)
         bounds_into(ts, bp, bnd)
@@ -339,40 +350,19 @@ def _copy(src, dst):
         dst[i] = src[i]
 
 
-def _trig_slots(n: int) -> int:
-    """The one-lane kernel's sincos arguments per stage: 2n + 1, padded to whole vectors of 4."""
-    return -(-(2 * n + 1) // 4) * 4
-
-
-def _exp_slots(n: int) -> int:
-    """The one-lane kernel's exp arguments per stage: n + 1, padded to whole vectors of 4."""
-    return -(-(n + 1) // 4) * 4
-
-
 def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_gains: int, n_obs_gains: int,
                 n_filter_gains: int) -> dict[str, tuple[int, int]]:
     """The per-lane entries of a block of the batched kernel, name -> (offset, length) in lane
-    entries (a block of L entries per lane holds ``L * LANES`` numbers)."""
-    nx = 2 * n + n_obs + n_ctrl
-    parts = [("K0", nx), ("K1", nx), ("K2", nx), ("K3", nx), ("dx", nx), ("xs", nx), ("xn", nx), ("ep", nx), ("x", nx),
-             ("y", n), ("nz", n), ("ref", 3 * n), ("bnd", BOUND_LEN), ("u", n), ("hu", n), ("satf", n),
-             ("x3", n), ("cout", n_out), ("fout", n_fout), ("rr", n), ("Mp", n * n), ("Lp", n * n),
-             ("nom", nominal_length(n)), ("pw", (10 + WORK_PER_LINK) * n + n * n), ("wl", work_length(n)),
-             ("wo", work_length(n)), ("smp", 4 * n), ("fr", n), ("res", n), ("plant", plant_length(n)),
-             ("rp", reference_length(n)), ("bp", len(BOUNDS_PACK)), ("lg", n_law_gains), ("og", n_obs_gains),
-             ("fg", n_filter_gains), ("ts", 1), ("flags", _N_FLAGS), ("ang", _trig_slots(n)), ("sn", _trig_slots(n)),
-             ("cs", _trig_slots(n)), ("ex", _exp_slots(n)), ("ev", _exp_slots(n))]
-    out, o = {}, 0
-    for name, m in parts:
-        out[name] = (o, m)
-        o += m
-    out["_total"] = (o, 0)
-    return out
+    entries (:func:`blf_gym.jit.layout.block_layout`; a block of L entries per lane holds
+    ``L * LANES`` numbers), and ``"_total"``: (L, 0)."""
+    pack = block_layout(n, n_obs, n_ctrl, n_out, n_fout, n_law_gains, n_obs_gains, n_filter_gains)
+    return {**pack.offsets(n), "_total": (pack.length(n), 0)}
 
 
-# per-lane flags of a block (floats, 1.0 true)
-(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0, _F_SAME_ARM, _F_SAME_Y) = range(9)
-_N_FLAGS = 9
+# per-lane flags of a block (floats, 1.0 true): blf_gym.jit.layout.FLAGS
+(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0, _F_SAME_ARM, _F_SAME_Y) = (FLAGS.index(f) for f in (
+    "noisy", "pending", "halt", "check", "ok", "stopped", "k0", "same_arm", "same_y"))
+_N_FLAGS = FLAGS.length()
 
 
 # long: the kernel's time loop is one compiled function (numba inlines nothing across a call to a
@@ -451,7 +441,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
                         plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
                         ok = _ode3_update(_lane(work, _L_x, nx, b), _lane(work, _L_K0, nx, b), _lane(work, _L_K1, nx, b),  # noqa: F821
-                                          _lane(work, _L_K2, nx, b), dt, plant_l[2 * n + 1 + _DIVLIM],  # noqa: F821
+                                          _lane(work, _L_K2, nx, b), dt, plant_l[at(_P_DIVLIM, n)],  # noqa: F821
                                           _lane(work, _L_xn, nx, b), _lane(work, _L_ep, nx, b))  # noqa: F821
                         flags[_F_OK] = 1.0 if ok else 0.0
                     if not any_check:
@@ -472,12 +462,14 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         _lane(work, _L_ts, 1, b)[0] = (t if stage == 0 else (t + 0.5 * dt if stage == 1 else  # noqa: F821
                                                     (t + 0.75 * dt if stage == 2 else (k + 1) * dt)))
                     for b in range(LN):
-                        same_y = _stage_trig(_lane(work, _L_ts, 1, b)[0], _lane(work, _L_xs, n, b), _lane(work, _L_xs + n, n, b),  # noqa: F821
+                        same_y = _stage_trig(_lane(work, _L_ts, 1, b)[0], _lane(work, _L_xs + at(_S_Q, n), n, b),  # noqa: F821
+                                    _lane(work, _L_xs + at(_S_QD, n), n, b),  # noqa: F821
                                     _lane(work, _L_nz, n, b), _lane(work, _L_y, n, b),  # noqa: F821
-                                    _lane(work, _L_rp, _NRP, b), _lane(work, _L_plant, 2 * n + 1, b),  # noqa: F821
-                                    _lane(work, _L_plant + 2 * n + 1, _NPL - 2 * n - 1, b), _lane(work, _L_bp, _NBP, b),  # noqa: F821
-                                    _lane(work, _L_ref, 3 * n, b), _lane(work, _L_bnd, BOUND_LEN, b),  # noqa: F821
-                                    _lane(work, _L_pw + 4 * n, 2 * n, b), _lane(work, _L_nom + n * n + n, 2 * n, b),  # noqa: F821
+                                    _lane(work, _L_rp, _NRP, b), _lane(work, _L_plant + at(_P_ARM, n), at(_SIZE_ARM, n), b),  # noqa: F821
+                                    _lane(work, _L_plant + at(_P_TAIL, n), at(_SIZE_TAIL, n), b), _lane(work, _L_bp, _NBP, b),  # noqa: F821
+                                    _lane(work, _L_ref, _NREF, b), _lane(work, _L_bnd, BOUND_LEN, b),  # noqa: F821
+                                    _lane(work, _L_pw + at(_KW_TRIG, n), at(_SIZE_TRIG, n), b),  # noqa: F821
+                                    _lane(work, _L_nom + at(_NOM_TRIG, n), at(_SIZE_TRIG, n), b),  # noqa: F821
                                     _lane(work, _L_fr, n, b), _lane(work, _L_ang, _NANG, b), _lane(work, _L_sn, _NANG, b),  # noqa: F821
                                     _lane(work, _L_cs, _NANG, b), _lane(work, _L_ex, _NEX, b), _lane(work, _L_ev, _NEX, b),  # noqa: F821
                                     n, LN == 1)  # noqa: F821
@@ -497,7 +489,7 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         lgb = _lane(work, _L_lg, _NLG, b)  # noqa: F821
                         ogb = _lane(work, _L_og, _NOG, b)  # noqa: F821
                         fg = _lane(work, _L_fg, _NFG, b)  # noqa: F821
-                        ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+                        ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
                         bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
                         cout = _lane(work, _L_cout, _NOUT, b)  # noqa: F821
                         fout = _lane(work, _L_fout, _NFOUT, b)  # noqa: F821
@@ -512,32 +504,30 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                         wl = _lane(work, _L_wl, work_length(n), b)  # noqa: F821
                         wo = _lane(work, _L_wo, work_length(n), b)  # noqa: F821
                         fr = _lane(work, _L_fr, n, b)  # noqa: F821
-                        nn = n * n
-                        arm = plant_b[: 2 * n + 1]
-                        o = 2 * n + 1
-                        q = fixed(x, 0, n)
-                        qd = fixed(x, n, n)
-                        xo = fixed(x, 2 * n, _NO)  # noqa: F821
-                        xc = fixed(x, 2 * n + _NO, _NC)  # noqa: F821
-                        dxo = fixed(dx, 2 * n, _NO)  # noqa: F821
-                        dxc = fixed(dx, 2 * n + _NO, _NC)  # noqa: F821
-                        trig = pw[4 * n : 6 * n]
-                        c = pw[6 * n : 7 * n]
-                        g = pw[7 * n : 8 * n]
-                        jf = pw[8 * n : 9 * n]
-                        rhs = pw[9 * n : 10 * n]
+                        arm = part(plant_b, _P_ARM, _SIZE_ARM, n)
+                        q = part(x, _S_Q, _SIZE_N, n)
+                        qd = part(x, _S_QD, _SIZE_N, n)
+                        xo = fixed(x, at(_S_OBS, n), _NO)  # noqa: F821
+                        xc = fixed(x, at(_S_OBS, n) + _NO, _NC)  # noqa: F821
+                        dxo = fixed(dx, at(_S_OBS, n), _NO)  # noqa: F821
+                        dxc = fixed(dx, at(_S_OBS, n) + _NO, _NC)  # noqa: F821
+                        trig = part(pw, _KW_TRIG, _SIZE_TRIG, n)
+                        c = part(pw, _KW_C, _SIZE_N, n)
+                        g = part(pw, _KW_G, _SIZE_N, n)
+                        jf = part(pw, _KW_JF, _SIZE_N, n)
+                        rhs = part(pw, _KW_RHS, _SIZE_N, n)
                         mass_matrix_into(trig, arm, Mp, pw)
                         gravity_into(trig, arm, g, pw)
                         ldl_factor_into(Mp, Lp)
                         if copy_model:
-                            for i in range(nn):
-                                nom[i] = Mp[i]
-                                nom[nn + 3 * n + i] = Lp[i]
+                            for i in range(n * n):
+                                nom[at(_NOM_M, n) + i] = Mp[i]
+                                nom[at(_NOM_L, n) + i] = Lp[i]
                             for i in range(n):
-                                nom[nn + i] = g[i]
+                                nom[at(_NOM_G, n) + i] = g[i]
                         else:
-                            nominal_terms_into(fixed(nom, 2 * nn + 3 * n, 2 * n + 1), nom, pw[10 * n :])
-                        umax = plant_b[o + _UMAX]
+                            nominal_terms_into(part(nom, _NOM_ARM, _SIZE_ARM, n), nom, part(pw, _KW_NOM, _SIZE_KW_NOM, n))
+                        umax = plant_b[at(_P_UMAX, n)]
                         _ctrl_output(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
                         if _FILTER:  # noqa: F821 (compile-time constant)
                             for i in range(n):
@@ -554,17 +544,18 @@ def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og,
                                 s = 1.0
                             u[i] = ui
                             satf[i] = s
-                            hu[i] = dead_zone(ui, plant_b[o + _HR], plant_b[o + _HL], plant_b[o + _TR], plant_b[o + _TL])
+                            hu[i] = dead_zone(ui, plant_b[at(_P_TAIL, n) + _HR], plant_b[at(_P_TAIL, n) + _HL],
+                                              plant_b[at(_P_TAIL, n) + _TR], plant_b[at(_P_TAIL, n) + _TL])
                         # plant_b: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
                         coriolis_times_into(trig, qd, qd, arm, c, pw)
-                        wrench_torque_into(trig, arm, plant_b[o + _FX : o + _MZ + 1], jf)
-                        on = force_active(tb, plant_b[o + _ONSET]) > 0.0
+                        wrench_torque_into(trig, arm, fixed(plant_b, at(_P_FX, n), at(_P_MZ, n) + 1 - at(_P_FX, n)), jf)
+                        on = force_active(tb, plant_b[at(_P_ONSET, n)]) > 0.0
                         for i in range(n):
                             jf[i] = jf[i] if on else 0.0
                         for i in range(n):
                             rhs[i] = hu[i] - c[i] - g[i] - jf[i] - fr[i]
-                            dx[i] = qd[i]
-                        ldl_solve_factored(Lp, rhs, dx[n : 2 * n])
+                            dx[at(_S_Q, n) + i] = qd[i]
+                        ldl_solve_factored(Lp, rhs, part(dx, _S_QD, _SIZE_N, n))
                         _obs_rhs(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
                         _ctrl_update(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
                     # into K0..K3: apart, since a view at an offset that depends on stage would keep
@@ -596,9 +587,9 @@ def _load_block_template(work, arm0, N, n_steps, X, ksteps, plant, nominal, rp, 
         _copy(plant[a], _lane(work, _L_plant, _NPL, b))  # noqa: F821
         nom = _lane(work, _L_nom, nominal_length(n), b)  # noqa: F821
         same_arm = True
-        for i in range(2 * n + 1):
-            nom[model_length(n) + i] = nominal[a, i]
-            if nominal[a, i] != plant[a, i]:
+        for i in range(at(_SIZE_ARM, n)):
+            nom[at(_NOM_ARM, n) + i] = nominal[a, i]
+            if nominal[a, i] != plant[a, at(_P_ARM, n) + i]:
                 same_arm = False
         _copy(rp[a], _lane(work, _L_rp, _NRP, b))  # noqa: F821
         _copy(bp[a], _lane(work, _L_bp, _NBP, b))  # noqa: F821
@@ -675,11 +666,11 @@ def _check_stability_template(work, arm0, dt, sps, sums, status, unstable_run):
         a = arm0 + b
         plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
         en = _error_ratio(_lane(work, _L_ep, nx, b), _lane(work, _L_K3, nx, b), _lane(work, _L_xn, nx, b), dt,  # noqa: F821
-                          plant_l[2 * n + 1 + _ERR_ATOL], plant_l[2 * n + 1 + _ERR_RTOL])
+                          plant_l[at(_P_ATOL, n)], plant_l[at(_P_RTOL, n)])
         if en > sums[a, SUM_ERR_MAX]:
             sums[a, SUM_ERR_MAX] = en
         err_run, unstable = _instability(en, flags[_F_NOISY] != 0.0, sps, unstable_run[a],
-                                         plant_l[2 * n + 1 + _UNSTABLE_STEPS])
+                                         plant_l[at(_P_UNSTABLE, n)])
         unstable_run[a] = err_run
         if unstable:
             status[a, ST_DIVERGED] = 2
@@ -701,7 +692,7 @@ def _sample_template(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, stat
         a = arm0 + b
         k = np.int64(flags[_F_K0]) + j
         x = _lane(work, _L_x, nx, b)  # noqa: F821
-        ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+        ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
         bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
         u = _lane(work, _L_u, n, b)  # noqa: F821
         satf = _lane(work, _L_satf, n, b)  # noqa: F821
@@ -728,20 +719,21 @@ def _sample_template(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, stat
             recording = nrec[a] < rec.shape[1]
             nom_a = nominal[a]
             if recording:
-                _lumped_true(x[:n], x[n : 2 * n], K0[n : 2 * n], u, nom_a, x3, _lane(work, _L_Mp, n * n, b),  # noqa: F821
+                _lumped_true(part(x, _S_Q, _SIZE_N, n), part(x, _S_QD, _SIZE_N, n), part(K0, _S_QD, _SIZE_N, n), u, nom_a,
+                             x3, _lane(work, _L_Mp, n * n, b),  # noqa: F821
                              _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
                 for i in range(n):
                     last_b[LAST_X3 * n + i] = x3[i]
             else:
-                pending = _lane(work, _L_smp, 4 * n, b)  # noqa: F821
+                pending = _lane(work, _L_smp, _NSMP, b)  # noqa: F821
                 for i in range(n):
-                    pending[i] = x[i]
-                    pending[n + i] = x[n + i]
-                    pending[2 * n + i] = K0[n + i]
-                    pending[3 * n + i] = u[i]
+                    pending[at(_PD_Q, n) + i] = x[at(_S_Q, n) + i]
+                    pending[at(_PD_QD, n) + i] = x[at(_S_QD, n) + i]
+                    pending[at(_PD_QDD, n) + i] = K0[at(_S_QD, n) + i]
+                    pending[at(_PD_U, n) + i] = u[i]
                 flags[_F_PENDING] = 1.0
             plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-            if accumulate_sample(x, y, ref, bnd, u, cout, plant_l[2 * n + 1 + _UMAX], sums[a], n):
+            if accumulate_sample(x, y, ref, bnd, u, cout, plant_l[at(_P_UMAX, n)], sums[a], n):
                 st_b[ST_VIOL_SAMPLES] += 1
             for i in range(n):
                 last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
@@ -804,8 +796,9 @@ def _store_block_template(work, arm0, N, dt, terminate, X, ksteps, nominal, stat
         last_b = last[a]
         st_b = status[a]
         if flags[_F_PENDING] != 0.0:
-            pending = _lane(work, _L_smp, 4 * n, b)  # noqa: F821
-            _lumped_true(pending[:n], pending[n : 2 * n], pending[2 * n : 3 * n], pending[3 * n :], nominal[a], x3,  # noqa: F821
+            pending = _lane(work, _L_smp, _NSMP, b)  # noqa: F821
+            _lumped_true(part(pending, _PD_Q, _SIZE_N, n), part(pending, _PD_QD, _SIZE_N, n),
+                         part(pending, _PD_QDD, _SIZE_N, n), part(pending, _PD_U, _SIZE_N, n), nominal[a], x3,  # noqa: F821
                          _lane(work, _L_Mp, n * n, b), _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
             for i in range(n):
                 last_b[LAST_X3 * n + i] = x3[i]
@@ -813,10 +806,10 @@ def _store_block_template(work, arm0, N, dt, terminate, X, ksteps, nominal, stat
         k0 = np.int64(flags[_F_K0])
         if flags[_F_STOPPED] == 0.0:
             t_end = (k0 + steps) * dt
-            ref = _lane(work, _L_ref, 3 * n, b)  # noqa: F821
+            ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
             bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
             plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-            reference_into(t_end, _lane(work, _L_rp, _NRP, b), plant_l[: 2 * n + 1], ref)  # noqa: F821
+            reference_into(t_end, _lane(work, _L_rp, _NRP, b), part(plant_l, _P_ARM, _SIZE_ARM, n), ref)  # noqa: F821
             bounds_into(t_end, _lane(work, _L_bp, _NBP, b), bnd)  # noqa: F821
             if _violates(x, ref, bnd, n):
                 st_b[ST_VIOL_STEPS] += 1
@@ -970,10 +963,10 @@ def _specialise(conn: Connection, lanes: int = LANES):
         if conn.filter is not None:
             pair += f"__{conn.filter.name}"
         tag = f"{pair}__{digest}"
-        off = {k: 2 * n + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
+        off = {k: STATE.length(n) + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
                for k in ("x1_hat", "x2_hat", "x3_hat")}
         fo = conn.fout_offsets
-        sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": 2 * n + conn.n_obs + conn.n_ctrl,
+        sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": STATE.length(n) + conn.n_obs + conn.n_ctrl,
                  "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"],
                  "_FILTER": conn.filter is not None, "_NFOUT": conn.n_fout,
                  "_BREACH": fo["breach"][0] if "breach" in fo else -1,
@@ -982,6 +975,7 @@ def _specialise(conn: Connection, lanes: int = LANES):
         sizes.update({f"_L_{k}": o for k, (o, _) in layout.items() if k != "_total"})
         sizes.update(_NPL=layout["plant"][1], _NRP=layout["rp"][1], _NBP=layout["bp"][1], _NLG=layout["lg"][1],
                      _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
+                     _NREF=layout["ref"][1], _NSMP=layout["smp"][1],
                      _NANG=layout["ang"][1], _NEX=layout["ex"][1],
                      _lane=_lane1 if lanes == 1 else _laneN)
         parts = {name: _clone(tpl, f"{name[1:]}{lanes}__n{n}__{tag}", sizes, inline="always")
@@ -1197,7 +1191,7 @@ class ClosedLoop:
             compile_notice(label, _cache_dir(self._kernel))
         c = self.connection
         self.N = len(scenarios)
-        self.nx = 2 * n + c.n_obs + c.n_ctrl
+        self.nx = STATE.length(n) + c.n_obs + c.n_ctrl
         """State entries per arm: [q, qd, observer states, controller states]."""
         self.X = np.zeros((self.N, self.nx))
         self.ksteps = np.zeros(self.N, dtype=np.int64)
@@ -1263,10 +1257,10 @@ class ClosedLoop:
         if not hasattr(self, "_batch"):
             n = self.n
             self._batch = Batch(
-                plant=np.zeros((self.N, plant_length(n))),
+                plant=np.zeros((self.N, PLANT.length(n))),
                 nominal=np.tile(self.controller.nominal.pack(), (self.N, 1)),
-                ref=np.zeros((self.N, reference_length(n))),
-                bnd=np.zeros((self.N, len(BOUNDS_PACK))),
+                ref=np.zeros((self.N, REFERENCE.length(n))),
+                bnd=np.zeros((self.N, BOUNDS.length())),
                 law_gains=np.tile(self.controller.gains, (self.N, 1)),
                 obs_gains=np.tile(self.observer.gains, (self.N, 1)),
                 filter_gains=np.tile(self.residual_filter.gains if self.residual_filter else np.zeros(0),
@@ -1291,16 +1285,17 @@ class ClosedLoop:
         q_d0, qd_d0, _ = joint_reference(k0 * self.dt, sc)
         q0 = q_d0 + np.asarray(sc.initial_error)
         no = self.connection.n_obs
+        head = STATE.length(n)
         self.X[i] = 0.0
-        self.X[i, :n] = q0
+        self.X[i, STATE.slice("q", n)] = q0
         obs0 = self.observer.initial(q0.copy())
         if k0:
-            self.X[i, n : 2 * n] = qd_d0
-            part = self.observer.state_offsets(n).get("x2_hat")
-            if part is not None and part[1] == n:
-                obs0[part[0] : part[0] + n] = qd_d0
-        self.X[i, 2 * n : 2 * n + no] = obs0
-        self.X[i, 2 * n + no :] = self.controller.initial(q0.copy())
+            self.X[i, STATE.slice("qd", n)] = qd_d0
+            x2 = self.observer.state_offsets(n).get("x2_hat")
+            if x2 is not None and x2[1] == n:
+                obs0[x2[0] : x2[0] + n] = qd_d0
+        self.X[i, head : head + no] = obs0
+        self.X[i, head + no :] = self.controller.initial(q0.copy())
         self.ksteps[i] = k0
         self.unstable_run[i] = 0
         self.last[i] = 0.0

@@ -13,25 +13,24 @@ from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache 
 
 from blf_gym.jit import vmath
 
-from blf_gym.model.params import BOUNDS_PACK, BoundParams
+from blf_gym.jit.layout import BOUND, BOUND_SIGNALS, BOUNDS
+from blf_gym.model.params import BoundParams
 
 __all__ = ["bounds_into", "bounds_exponent", "bounds_from", "error_bounds", "log_rate", "BOUND_SIGNALS", "BOUND_LEN"]
 
-BOUND_SIGNALS = ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot", "k_b_ddot")
-"""The vector written by :func:`bounds_into`, declared once (these are also the plug-in signals'
-names, :mod:`blf_gym.plugins.blocks`)."""
-BOUND_LEN = len(BOUND_SIGNALS)
-KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT = range(BOUND_LEN)
-_BP = {name: i for i, name in enumerate(BOUNDS_PACK)}
-_AMP_A, _FLOOR_A, _AMP_B, _FLOOR_B, _RATE = (_BP[k] for k in ("upper_amplitude", "upper_floor", "lower_amplitude",
-                                                             "lower_floor", "decay_rate"))
+BOUND_LEN = BOUND.length()
+"""Entries of the bound signal (:data:`blf_gym.jit.layout.BOUND`)."""
+KA, KA_DOT, KA_DDOT, KB, KB_DOT, KB_DDOT = (BOUND.index(k) for k in ("k_a", "k_a_dot", "k_a_ddot", "k_b", "k_b_dot",
+                                                                   "k_b_ddot"))
+_AMP_A, _FLOOR_A, _AMP_B, _FLOOR_B, _RATE = (BOUNDS.index(k) for k in ("upper_amplitude", "upper_floor",
+                                                                       "lower_amplitude", "lower_floor", "decay_rate"))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def bounds_into(t, bp, out):
     """Write ``[k_a, k_a', k_a'', k_b, k_b', k_b'']`` at time ``t`` into ``out``.
 
-    ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.model.params.BOUNDS_PACK`.
+    ``bp`` is :meth:`BoundParams.pack`, laid out as :data:`blf_gym.jit.layout.BOUNDS`.
     """
     bounds_from(vmath.exp(bounds_exponent(t, bp)), bp, out)
 

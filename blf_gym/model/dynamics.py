@@ -33,6 +33,7 @@ from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache 
 
 from blf_gym.jit import vmath
 
+from blf_gym.jit.layout import ARM, DYN_WORK, TRIG, WORK_PER_LINK, at, links_of, part
 from blf_gym.model.params import ArmParams
 
 __all__ = [
@@ -53,8 +54,11 @@ __all__ = [
     "joint_positions",
 ]
 
-WORK_PER_LINK = 4
-"""Scratch entries per link that the ``*_into`` functions need in ``work``."""
+_COS, _SIN = TRIG.start("cos"), TRIG.start("sin")
+_LEN, _MASS, _GRAV = ARM.start("lengths"), ARM.start("masses"), ARM.start("gravity")
+_MU, _OMEGA, _PSI = DYN_WORK.start("mu"), DYN_WORK.start("omega"), DYN_WORK.start("psi")
+_PER_LINK = DYN_WORK.size("mu")  # each part of the work is n long
+_TRIG_SIZE = TRIG.total
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -65,34 +69,37 @@ def abs_trig_into(q, trig):
     transcendental calls however many model terms are evaluated at it.
     """
     n = q.shape[0]
+    c0, s0 = at(_COS, n), at(_SIN, n)
     th = 0.0
     for j in range(n):
         th += q[j]
         sn, cs = vmath.sincos(th)
-        trig[j] = cs
-        trig[n + j] = sn
+        trig[c0 + j] = cs
+        trig[s0 + j] = sn
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _mass_beyond(arm, n, mu):
+    m0 = at(_MASS, n)
     acc = 0.0
     for j in range(n - 1, -1, -1):
-        acc += arm[n + j]
+        acc += arm[m0 + j]
         mu[j] = acc
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def mass_matrix_into(trig, arm, M, work):
     """M(q) into the flat row-major ``M`` (n*n). ``work`` needs ``n`` entries."""
-    n = trig.shape[0] // 2
-    mu = work[:n]
+    n = links_of(trig.shape[0], _TRIG_SIZE)
+    l0, c0, s0 = at(_LEN, n), at(_COS, n), at(_SIN, n)
+    mu = part(work, _MU, _PER_LINK, n)
     _mass_beyond(arm, n, mu)
     for j in range(n):
-        lj = arm[j]
+        lj = arm[l0 + j]
         M[j * n + j] = lj * lj * mu[j]
         for k in range(j + 1, n):
             # cos(theta_j - theta_k)
-            w = lj * arm[k] * mu[k] * (trig[j] * trig[k] + trig[n + j] * trig[n + k])
+            w = lj * arm[l0 + k] * mu[k] * (trig[c0 + j] * trig[c0 + k] + trig[s0 + j] * trig[s0 + k])
             M[j * n + k] = w
             M[k * n + j] = w
     # M = T^T W T: reverse cumulative sums along both axes.
@@ -112,9 +119,10 @@ def coriolis_times_into(trig, v, w, arm, out, work):
     ``v = x2_hat`` and ``w = alpha1``. ``work`` needs ``3 n`` entries.
     """
     n = v.shape[0]
-    mu = work[:n]
-    om = work[n : 2 * n]
-    ps = work[2 * n : 3 * n]
+    l0, c0, s0 = at(_LEN, n), at(_COS, n), at(_SIN, n)
+    mu = part(work, _MU, _PER_LINK, n)
+    om = part(work, _OMEGA, _PER_LINK, n)
+    ps = part(work, _PSI, _PER_LINK, n)
     _mass_beyond(arm, n, mu)
     a = 0.0
     b = 0.0
@@ -129,7 +137,7 @@ def coriolis_times_into(trig, v, w, arm, out, work):
     for j in range(n):
         for k in range(j + 1, n):
             # sin(theta_j - theta_k)
-            s = arm[j] * arm[k] * mu[k] * (trig[n + j] * trig[k] - trig[j] * trig[n + k])
+            s = arm[l0 + j] * arm[l0 + k] * mu[k] * (trig[s0 + j] * trig[c0 + k] - trig[c0 + j] * trig[s0 + k])
             out[j] += s * om[k] * ps[k]
             out[k] -= s * om[j] * ps[j]
     for j in range(n - 2, -1, -1):
@@ -140,12 +148,13 @@ def coriolis_times_into(trig, v, w, arm, out, work):
 def gravity_into(trig, arm, out, work):
     """G(q) = dV/dq into ``out`` (n). ``work`` needs ``n`` entries."""
     n = out.shape[0]
-    mu = work[:n]
+    l0, c0 = at(_LEN, n), at(_COS, n)
+    mu = part(work, _MU, _PER_LINK, n)
     _mass_beyond(arm, n, mu)
-    g = arm[2 * n]
+    g = arm[at(_GRAV, n)]
     acc = 0.0
     for j in range(n - 1, -1, -1):
-        acc += g * arm[j] * mu[j] * trig[j]
+        acc += g * arm[l0 + j] * mu[j] * trig[c0 + j]
         out[j] = acc
 
 
@@ -153,11 +162,12 @@ def gravity_into(trig, arm, out, work):
 def wrench_torque_into(trig, arm, wrench, out):
     """J(q)^T f for an end-effector wrench f = (f_x, f_y, moment), into ``out`` (n)."""
     n = out.shape[0]
+    l0, c0, s0 = at(_LEN, n), at(_COS, n), at(_SIN, n)
     sx = 0.0
     sy = 0.0
     for j in range(n - 1, -1, -1):
-        sx += arm[j] * trig[n + j]
-        sy += arm[j] * trig[j]
+        sx += arm[l0 + j] * trig[s0 + j]
+        sy += arm[l0 + j] * trig[c0 + j]
         out[j] = -wrench[0] * sx + wrench[1] * sy + wrench[2]
 
 
@@ -215,16 +225,16 @@ def ldl_solve_into(M, b, out, L):
 
 def _packed(arm: ArmParams | np.ndarray, q: np.ndarray) -> np.ndarray:
     packed = arm.pack() if isinstance(arm, ArmParams) else np.ascontiguousarray(arm, dtype=np.float64)
-    if packed.shape != (2 * q.shape[-1] + 1,):
+    if packed.shape != (ARM.length(q.shape[-1]),):
         raise ValueError(
-            f"arm must describe {q.shape[-1]} links (packed length {2 * q.shape[-1] + 1}), "
+            f"arm must describe {q.shape[-1]} links (packed length {ARM.length(q.shape[-1])}), "
             f"got packed length {packed.shape}"
         )
     return packed
 
 
 def _trig(q: np.ndarray) -> np.ndarray:
-    trig = np.empty(2 * q.shape[0])
+    trig = np.empty(TRIG.length(q.shape[0]))
     abs_trig_into(q, trig)
     return trig
 
@@ -241,7 +251,7 @@ def mass_matrix(q: np.ndarray, arm: ArmParams | np.ndarray = ArmParams()) -> np.
     q = _vec(q)
     n = q.shape[0]
     M = np.empty(n * n)
-    mass_matrix_into(_trig(q), _packed(arm, q), M, np.empty(WORK_PER_LINK * n))
+    mass_matrix_into(_trig(q), _packed(arm, q), M, np.empty(DYN_WORK.length(n)))
     return M.reshape(n, n)
 
 
@@ -253,7 +263,7 @@ def coriolis_matrix(q: np.ndarray, qd: np.ndarray, arm: ArmParams | np.ndarray =
     C = np.empty((n, n))
     e = np.zeros(n)
     col = np.empty(n)
-    work = np.empty(WORK_PER_LINK * n)
+    work = np.empty(DYN_WORK.length(n))
     trig = _trig(q)
     for k in range(n):
         e[:] = 0.0
@@ -267,7 +277,7 @@ def gravity(q: np.ndarray, arm: ArmParams | np.ndarray = ArmParams()) -> np.ndar
     """Gravity torque G(q), shape (n,)."""
     q = _vec(q)
     out = np.empty(q.shape[0])
-    gravity_into(_trig(q), _packed(arm, q), out, np.empty(WORK_PER_LINK * q.shape[0]))
+    gravity_into(_trig(q), _packed(arm, q), out, np.empty(DYN_WORK.length(q.shape[0])))
     return out
 
 
@@ -277,7 +287,7 @@ def joint_positions(q: np.ndarray, arm: ArmParams | np.ndarray = ArmParams()) ->
     packed = _packed(arm, q)
     n = q.shape[0]
     th = np.cumsum(q)
-    steps = packed[:n, None] * np.stack([np.cos(th), np.sin(th)], axis=1)
+    steps = packed[ARM.slice("lengths", n), None] * np.stack([np.cos(th), np.sin(th)], axis=1)
     return np.vstack([np.zeros((1, 2)), np.cumsum(steps, axis=0)])
 
 

@@ -19,6 +19,9 @@ from typing import Any, Literal
 
 import numpy as np
 
+from blf_gym.jit.layout import (ARM, BOUNDS_PACK, PLANT, PLANT_TAIL, REFERENCE, REFERENCE_JOINT_PACK, REFERENCE_KINDS,
+                                REFERENCE_PACK)
+
 __all__ = [
     "MAX_DURATION",
     "ArmParams",
@@ -259,8 +262,9 @@ class ArmParams:
         return len(self.lengths)
 
     def pack(self) -> np.ndarray:
-        """Layout ``[lengths (n), masses (n), gravity]``, length 2n + 1."""
-        return np.array([*self.lengths, *self.masses, self.gravity], dtype=np.float64)
+        """Layout :data:`blf_gym.jit.layout.ARM`: ``[lengths (n), masses (n), gravity]``, length 2n + 1."""
+        parts = {"lengths": self.lengths, "masses": self.masses, "gravity": (self.gravity,)}
+        return np.array([v for p in ARM for v in parts[p]], dtype=np.float64)
 
 
 @dataclass(frozen=True)
@@ -487,42 +491,14 @@ class SimParams:
         return self.n_samples * self.steps_per_sample
 
 
-BOUNDS_PACK = ("upper_amplitude", "upper_floor", "lower_amplitude", "lower_floor", "decay_rate")
-"""The packed bounds (:meth:`BoundParams.pack`), declared once; ``blf_gym.model.bounds`` reads its offsets."""
-
-REFERENCE_PACK = ("frequency", "center_x", "center_y", "radius", "orientation", "branch", "wrist_x", "wrist_y",
-                  "k", "cos_beta", "sin_beta", "beta", "kind")
-"""The head of the packed reference (:meth:`Scenario.pack_reference`), declared once;
-``blf_gym.model.reference`` reads its offsets: the circle's frequency (Hz), centre (m), radius (m)
-and orientation (rad), the branch (0 smooth, 1 standard), then derived constants: the wrist
-circle's centre (m), k, and the cosine, sine and value of beta, the angle of the wrist centre; then
-the kind (0 circle, 1 joint). For kind "joint" only the frequency is used, with beta = 0."""
-
-REFERENCE_JOINT_PACK = ("cos_phase", "sin_phase", "amplitude", "offset")
-"""After the head, n entries of each of these, in this order (a block of n per name): the joint
-sinusoids' phases (as cosine and sine), amplitudes and offsets; zeros for kind "circle"."""
-
-REFERENCE_KINDS = ("circle", "joint")
-"""The reference kinds (:class:`ReferenceParams`), in the order of their packed code."""
-
-
 def reference_length(n: int) -> int:
-    """Length of the packed reference of an n-link scenario."""
-    return len(REFERENCE_PACK) + len(REFERENCE_JOINT_PACK) * n
-
-PLANT_TAIL = (
-    "viscous", "coulomb", "tanh_slope",                              # friction, FrictionParams
-    "slope_right", "slope_left", "break_right", "break_left",         # dead-zone, DeadZoneParams
-    "f_x", "f_y", "moment", "onset",                                  # external force, ForceParams
-    "max_torque", "divergence_limit", "error_rtol", "error_atol", "unstable_steps",  # SimParams
-)
-"""The packed plant vector after the arm block (2n+1 entries), declared once: the kernel reads
-every offset from this tuple (``blf_gym.kernel.simulate``), :meth:`Scenario.pack_plant` writes it."""
+    """Length of the packed reference of an n-link scenario (:data:`blf_gym.jit.layout.REFERENCE`)."""
+    return REFERENCE.length(n)
 
 
 def plant_length(n: int) -> int:
-    """Length of the packed plant vector of an n-link scenario."""
-    return 2 * n + 1 + len(PLANT_TAIL)
+    """Length of the packed plant vector of an n-link scenario (:data:`blf_gym.jit.layout.PLANT`)."""
+    return PLANT.length(n)
 
 
 @dataclass(frozen=True)
@@ -601,7 +577,8 @@ class Scenario:
 
     # ---- packing for the compiled kernel -------------------------------------------------
     def pack_plant(self) -> np.ndarray:
-        """Layout: ``arm.pack()`` (2n+1), then the entries of :data:`PLANT_TAIL`, in its order."""
+        """Layout :data:`blf_gym.jit.layout.PLANT`: ``arm.pack()`` (2n+1), then the entries of
+        :data:`PLANT_TAIL`, in its order."""
         f, d, w, s = self.friction, self.dead_zone, self.force, self.sim
         values = {
             "viscous": f.viscous, "coulomb": f.coulomb, "tanh_slope": f.tanh_slope,
@@ -621,7 +598,9 @@ class Scenario:
         if r.kind == "joint":
             head = {name: 0.0 for name in REFERENCE_PACK}
             head.update(frequency=r.frequency, cos_beta=1.0, kind=float(REFERENCE_KINDS.index("joint")))
-            joints = np.concatenate([np.cos(r.phases), np.sin(r.phases), r.amplitudes, r.offsets])
+            blocks = {"cos_phase": np.cos(r.phases), "sin_phase": np.sin(r.phases), "amplitude": r.amplitudes,
+                      "offset": r.offsets}
+            joints = np.concatenate([np.asarray(blocks[p], dtype=np.float64) for p in REFERENCE_JOINT_PACK])
             return np.concatenate([np.array([head[name] for name in REFERENCE_PACK], dtype=np.float64), joints])
         return np.concatenate([self._pack_circle(), np.zeros(len(REFERENCE_JOINT_PACK) * n)])
 

@@ -27,20 +27,17 @@ from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache 
 
 from blf_gym.jit import vmath
 
-from blf_gym.model.params import REFERENCE_JOINT_PACK, REFERENCE_PACK, Scenario
+from blf_gym.jit.layout import ARM, REF, REFERENCE, REFERENCE_SIGNALS, at
+from blf_gym.model.params import Scenario
 
 __all__ = ["reference_into", "reference_angle", "reference_from", "joint_reference", "REFERENCE_SIGNALS"]
 
-REFERENCE_SIGNALS = ("q_d", "qd_d", "qdd_d")
-"""The vector written by :func:`reference_into`, n entries each, declared once (also the plug-in
-signals' names, :mod:`blf_gym.plugins.blocks`)."""
-_RP = {name: i for i, name in enumerate(REFERENCE_PACK)}
-_FREQ, _RADIUS, _ORIENT, _BRANCH = _RP["frequency"], _RP["radius"], _RP["orientation"], _RP["branch"]
-_WX, _WY, _K, _CB, _SB, _BETA = (_RP[k] for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))
-_KIND = _RP["kind"]
-# each block of REFERENCE_JOINT_PACK starts at _J0 + k n, k its index in that tuple
-_J0 = len(REFERENCE_PACK)
-_JCOS, _JSIN, _JAMP, _JOFF = (REFERENCE_JOINT_PACK.index(k) for k in ("cos_phase", "sin_phase", "amplitude", "offset"))
+_FREQ, _RADIUS, _ORIENT, _BRANCH = (REFERENCE.index(k) for k in ("frequency", "radius", "orientation", "branch"))
+_WX, _WY, _K, _CB, _SB, _BETA = (REFERENCE.index(k) for k in ("wrist_x", "wrist_y", "k", "cos_beta", "sin_beta", "beta"))
+_KIND = REFERENCE.index("kind")
+_JCOS, _JSIN, _JAMP, _JOFF = (REFERENCE.start(k) for k in ("cos_phase", "sin_phase", "amplitude", "offset"))
+_Q, _QD, _QDD = (REF.start(k) for k in ("q_d", "qd_d", "qdd_d"))
+_L1, _L2 = ARM.index("lengths"), ARM.index("lengths") + 1
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -66,7 +63,7 @@ def reference_from(st, ct, rp, arm, out):
     kernel evaluates those with the plant's and the measurement's link angles in one loop."""
     f, rad, phi, standard = rp[_FREQ], rp[_RADIUS], rp[_ORIENT], rp[_BRANCH] > 0.5
     wcx, wcy, k, cb, sb = rp[_WX], rp[_WY], rp[_K], rp[_CB], rp[_SB]
-    l1, l2 = arm[0], arm[1]
+    l1, l2 = arm[_L1], arm[_L2]
     om = 2.0 * np.pi * f
     nu = 0.5 * om
     # theta = (om t - beta) / 2 with beta = angle(c_w); om t = 2 theta + beta
@@ -126,15 +123,17 @@ def reference_from(st, ct, rp, arm, out):
     q1 = rp[_BETA] + vmath.atan2(wry * ex - wrx * ey, wrx * ex + wry * ey)
     q1d = ald - bed
     q1dd = aldd - bedd
-    out[0] = q1
-    out[1] = q2
-    out[2] = phi - q1 - q2
-    out[3] = q1d
-    out[4] = q2d
-    out[5] = -q1d - q2d
-    out[6] = q1dd
-    out[7] = q2dd
-    out[8] = -q1dd - q2dd
+    n = 3  # the circle is the paper's 3-link inverse kinematics
+    q, qd, qdd = at(_Q, n), at(_QD, n), at(_QDD, n)
+    out[q] = q1
+    out[q + 1] = q2
+    out[q + 2] = phi - q1 - q2
+    out[qd] = q1d
+    out[qd + 1] = q2d
+    out[qd + 2] = -q1d - q2d
+    out[qdd] = q1dd
+    out[qdd + 1] = q2dd
+    out[qdd + 2] = -q1dd - q2dd
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -142,21 +141,21 @@ def _sinusoids_from(c, s, om, rp, arm, out):
     """Kind "joint": q_d,j = offset_j + a_j sin(om t + p_j) and its derivatives, from c = cos(om t),
     s = sin(om t). ``out`` holds 3n entries (callers pass the packed plant or the arm as ``arm``, so
     n is read from ``out``)."""
-    n = out.shape[0] // 3
+    n = out.shape[0] // len(REFERENCE_SIGNALS)
     for j in range(n):
-        cp = rp[_J0 + _JCOS * n + j]
-        sp = rp[_J0 + _JSIN * n + j]
-        a = rp[_J0 + _JAMP * n + j]
+        cp = rp[at(_JCOS, n) + j]
+        sp = rp[at(_JSIN, n) + j]
+        a = rp[at(_JAMP, n) + j]
         sj = s * cp + c * sp  # sin(om t + p_j)
         cj = c * cp - s * sp  # cos(om t + p_j)
-        out[j] = rp[_J0 + _JOFF * n + j] + a * sj
-        out[n + j] = a * om * cj
-        out[2 * n + j] = -a * om * om * sj
+        out[at(_Q, n) + j] = rp[at(_JOFF, n) + j] + a * sj
+        out[at(_QD, n) + j] = a * om * cj
+        out[at(_QDD, n) + j] = -a * om * om * sj
 
 
 @njit(cache=True, error_model="numpy")
 def _reference_table(ts, rp, arm):
-    out = np.empty((ts.shape[0], 3 * ((arm.shape[0] - 1) // 2)))
+    out = np.empty((ts.shape[0], len(REFERENCE_SIGNALS) * ((arm.shape[0] - 1) // 2)))
     for i in range(ts.shape[0]):
         reference_into(ts[i], rp, arm, out[i])
     return out
@@ -168,4 +167,4 @@ def joint_reference(t: np.ndarray | float, scenario: Scenario = Scenario()) -> t
     t_arr = np.atleast_1d(np.asarray(t, dtype=np.float64)).ravel()
     table = _reference_table(t_arr, scenario.pack_reference(), scenario.arm.pack())
     shape = np.shape(t) + (n,)
-    return (table[:, 0:n].reshape(shape), table[:, n:2 * n].reshape(shape), table[:, 2 * n:3 * n].reshape(shape))
+    return tuple(table[:, REF.slice(k, n)].reshape(shape) for k in REFERENCE_SIGNALS)

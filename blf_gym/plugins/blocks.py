@@ -77,8 +77,8 @@ from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache 
 from blf_gym.model.dynamics import (abs_trig_into, coriolis_times_into, gravity_into, ldl_factor_into, ldl_solve_factored,
                        mass_matrix_into)
 from blf_gym.results.io import cache_dir
-from blf_gym.model.bounds import BOUND_SIGNALS
 from blf_gym.model.params import ArmParams
+from blf_gym.jit.layout import BOUND, NOMINAL, PLUGIN_WORK, REF, at, links_of, part
 from blf_gym.jit.views import fixed
 from blf_gym.model.reference import REFERENCE_SIGNALS
 
@@ -92,24 +92,30 @@ __all__ = [
 # the nominal model signal and its operators
 
 
+_NOM_M, _NOM_G, _NOM_TRIG, _NOM_L, _NOM_ARM, _NOM_SCRATCH = (NOMINAL.start(p) for p in NOMINAL)
+_SIZE_M, _SIZE_G, _SIZE_TRIG, _SIZE_L, _SIZE_ARM, _SIZE_SCRATCH = (NOMINAL.size(p) for p in NOMINAL)
+_NOM_TOTAL, _WORK_TOTAL = NOMINAL.total, PLUGIN_WORK.total
+
+
 @njit(cache=True, error_model="numpy", inline="always")
 def work_length(n):
-    """Length of the ``work`` scratch signal for n joints."""
-    return 2 * n * n + 12 * n
+    """Length of the ``work`` scratch signal for n joints (:data:`blf_gym.jit.layout.PLUGIN_WORK`)."""
+    return at(_WORK_TOTAL, n)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def model_length(n):
-    """Length of the model part of the ``nominal`` signal: [M(y) row-major (n^2), G(y) (n), cos and
-    sin of the absolute link angles (2n), the LDL^T factor of M(y) (n^2)]."""
-    return 2 * n * n + 3 * n
+    """Length of the model part of the ``nominal`` signal (:data:`blf_gym.jit.layout.NOMINAL` up to
+    the arm): [M(y) row-major (n^2), G(y) (n), cos and sin of the absolute link angles (2n), the
+    LDL^T factor of M(y) (n^2)]."""
+    return at(_NOM_ARM, n)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def nominal_length(n):
     """Length of the ``nominal`` signal: the model part, the nominal arm (2n + 1, ArmParams.pack())
     and 4n entries of scratch for the operators."""
-    return 2 * n * n + 3 * n + 2 * n + 1 + 4 * n
+    return at(_NOM_TOTAL, n)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -117,8 +123,7 @@ def nominal_model_into(y, arm, model, work):
     """Fill the model part of a ``nominal`` signal, [M(y), G(y), cos theta, sin theta, LDL^T factor of
     M(y)], for the arm ``arm`` (ArmParams.pack()). ``work`` needs ``n`` entries."""
     n = y.shape[0]
-    nn = n * n
-    abs_trig_into(y, model[nn + n : nn + 3 * n])
+    abs_trig_into(y, part(model, _NOM_TRIG, _SIZE_TRIG, n))
     nominal_terms_into(arm, model, work)
 
 
@@ -127,22 +132,22 @@ def nominal_terms_into(arm, model, work):
     """The rest of :func:`nominal_model_into` once the model's cos and sin entries are in place:
     M, G and the LDL^T factor (the closed loop computes the trigonometry apart, see
     :mod:`blf_gym.kernel.simulate`)."""
-    n = (arm.shape[0] - 1) // 2
-    nn = n * n
-    trig = model[nn + n : nn + 3 * n]
-    mass_matrix_into(trig, arm, model[:nn], work)
-    gravity_into(trig, arm, model[nn : nn + n], work)
-    ldl_factor_into(model[:nn], model[nn + 3 * n : 2 * nn + 3 * n])
+    n = links_of(arm.shape[0], _SIZE_ARM)
+    trig = part(model, _NOM_TRIG, _SIZE_TRIG, n)
+    mass_matrix_into(trig, arm, part(model, _NOM_M, _SIZE_M, n), work)
+    gravity_into(trig, arm, part(model, _NOM_G, _SIZE_G, n), work)
+    ldl_factor_into(part(model, _NOM_M, _SIZE_M, n), part(model, _NOM_L, _SIZE_L, n))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def mass_times(nominal, w, out):
     """out = M(y) w, the nominal inertia at the measured angles."""
     n = w.shape[0]
+    m0 = at(_NOM_M, n)
     for i in range(n):
         acc = 0.0
         for j in range(n):
-            acc += nominal[i * n + j] * w[j]
+            acc += nominal[m0 + i * n + j] * w[j]
         out[i] = acc
 
 
@@ -150,27 +155,24 @@ def mass_times(nominal, w, out):
 def mass_solve(nominal, b, out):
     """out = M(y)^-1 b (from the LDL^T factor, no division)."""
     n = b.shape[0]
-    o = n * n + 3 * n
-    ldl_solve_factored(nominal[o : o + n * n], b, out)
+    ldl_solve_factored(part(nominal, _NOM_L, _SIZE_L, n), b, out)
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def coriolis_times(nominal, v, w, out):
     """out = C(y, v) w with C the Christoffel-symbol Coriolis matrix of the nominal arm."""
     n = v.shape[0]
-    nn = n * n
-    trig = nominal[nn + n : nn + 3 * n]
-    o = 2 * nn + 3 * n
-    arm = nominal[o : o + 2 * n + 1]
-    coriolis_times_into(trig, v, w, arm, out, nominal[o + 2 * n + 1 : o + 6 * n + 1])
+    coriolis_times_into(part(nominal, _NOM_TRIG, _SIZE_TRIG, n), v, w, part(nominal, _NOM_ARM, _SIZE_ARM, n), out,
+                        part(nominal, _NOM_SCRATCH, _SIZE_SCRATCH, n))
 
 
 @njit(cache=True, error_model="numpy", inline="always")
 def gravity(nominal, out):
     """out = G(y), the nominal gravity torque at the measured angles."""
     n = out.shape[0]
+    g0 = at(_NOM_G, n)
     for i in range(n):
-        out[i] = nominal[n * n + i]
+        out[i] = nominal[g0 + i]
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -209,8 +211,6 @@ BASE_SIGNALS: dict[str, tuple[str, str, str]] = {
     "work": ("work", "-", "scratch"),
 }
 """Signals every plug-in function may read, whatever the other blocks are."""
-_BOUND_INDEX = {name: i for i, name in enumerate(BOUND_SIGNALS)}
-_REF_INDEX = {name: i for i, name in enumerate(REFERENCE_SIGNALS)}
 _RESERVED = {*BASE_SIGNALS, "u", "state", "dstate", "residual"}
 _SIZE = re.compile(r"^\s*(\d*)\s*\*?\s*n\s*$")
 
@@ -587,10 +587,11 @@ def _expr(role: str, name: str, ctrl: Controller, obs: Observer, filt: "Residual
     simple = {"t": "t", "y": "y", "q_true": "q", "qd_true": "qd", "nominal": "nom", "work": "work", "u_max": "umax"}
     if name in simple:
         return simple[name]
-    if name in _REF_INDEX:
-        return f"_fixed(ref, {_REF_INDEX[name] * n}, {n})"
-    if name in _BOUND_INDEX:
-        return f"bnd[{_BOUND_INDEX[name]}]"
+    if name in REF:
+        off, m = REF.offsets(n)[name]
+        return f"_fixed(ref, {off}, {m})"
+    if name in BOUND:
+        return f"bnd[{BOUND.index(name)}]"
     own = {"ctrl_out": ctrl, "ctrl_upd": ctrl, "obs": obs, "filter": filt}[role]
     x, dx, g = {"ctrl_out": ("xc", "dxc", "cg"), "ctrl_upd": ("xc", "dxc", "cg"), "obs": ("xo", "dxo", "og"),
                 "filter": (None, None, "fg")}[role]
@@ -672,14 +673,14 @@ def parse_filter_spec(spec: Any) -> tuple[str, dict[str, float]]:
         raise ValueError(f"residual_filter must be a filter's name, optionally 'NAME:key=value,...', got {spec!r}")
     name, _, rest = spec.partition(":")
     kwargs: dict[str, float] = {}
-    for part in filter(None, (p.strip() for p in rest.split(","))):
-        key, eq, value = part.partition("=")
+    for item in filter(None, (p.strip() for p in rest.split(","))):
+        key, eq, value = item.partition("=")
         try:
             if not eq or not key.strip():
                 raise ValueError
             kwargs[key.strip()] = float(value)
         except ValueError:
-            raise ValueError(f"residual_filter {spec!r}: {part!r} is not key=number "
+            raise ValueError(f"residual_filter {spec!r}: {item!r} is not key=number "
                              "(the form is 'NAME:key=value,key=value')") from None
     return name.strip(), kwargs
 
@@ -788,14 +789,15 @@ def _trial(conn: Connection) -> None:
     sc = preset("paper-0.1hz") if n == 3 else joint_scenario(n)
     q_d, qd_d, qdd_d = joint_reference(0.0, sc)
     y = q_d + 0.01
-    ref = np.concatenate([q_d, qd_d, qdd_d]).astype(np.float64)
-    bnd = np.zeros(len(BOUND_SIGNALS))
+    ref = np.zeros(REF.length(n))
+    for name, value in zip(REFERENCE_SIGNALS, (q_d, qd_d, qdd_d)):
+        ref[REF.slice(name, n)] = value
+    bnd = np.zeros(BOUND.length())
     bounds_into(0.0, sc.bounds.pack(), bnd)
     nom = np.zeros(nominal_length(n))
     nominal_model_into(y, c.nominal.pack(), nom, np.zeros(work_length(n)))
     arm = c.nominal.pack()
-    m0 = model_length(n)
-    nom[m0 : m0 + arm.size] = arm
+    nom[NOMINAL.slice("arm", n)] = arm
     xo = o.initial(y)
     xc = c.initial(y)
     qd = qd_d.copy()
