@@ -9,7 +9,7 @@ import numpy as np
 
 from blf_gym.model.params import ArmParams
 
-__all__ = ["params_from", "positive_vector", "PAPER_LINKS"]
+__all__ = ["PAPER_LINKS", "params_from", "positive_vector"]
 
 PAPER_LINKS = ArmParams().n_links
 """Links of the paper's arm (Table 1, the default :class:`~blf_gym.model.params.ArmParams`): the length

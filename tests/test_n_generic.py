@@ -52,7 +52,7 @@ def test_every_registered_law_builds_at_n_or_names_the_paper_gain_it_needs(n):
         if name in ANY_N:
             c = make_controller(name, nominal=arm)
         else:
-            with pytest.raises(ValueError, match=r"\.(K1|Kp) must have one number or %d entries.*paper's 3-link arm" % n):
+            with pytest.raises(ValueError, match=rf"\.(K1|Kp) must have one number or {n} entries.*paper's 3-link arm"):
                 make_controller(name, nominal=arm)
             # one number per gain stands for every joint
             paper = make_controller(name).params
