@@ -242,21 +242,28 @@ def test_the_cache_keeps_every_kernel_and_drops_only_stale_builds_of_the_same_on
     from blf_gym.kernel.simulate import remove_stale_cache
 
     new, old = "0123456789", "abcdef0123"
-    names = {
-        f"simulate.advance__n3__proposed__leso__{new}-329.py311.nbi": True,        # this build: kept
-        f"simulate.advance__n3__proposed__leso__{new}-329.py311.1.nbc": True,
-        f"simulate.advance__n3__proposed__leso__{old}-329.py311.nbi": False,       # a stale build: gone
-        f"simulate.advance__n3__proposed__leso__{old}-329.py311.1.nbc": False,
-        f"simulate.advance__n3__proposed__leso__barrier__{old}-329.py311.nbi": True,        # other kernels
-        f"simulate.advance__n3__proposed__leso__barrier_plain__{old}-329.py311.nbi": True,
-        f"simulate.advance__n3__proposed__leso2__{old}-329.py311.nbi": True,
-        f"simulate.stage__n3__proposed__leso__{old}-300.py311.nbi": True,
+    pre = "advance1__n3__proposed__leso__"
+    names = {  # a build's module and lock beside numba's cache files in __pycache__
+        f"{pre}{new}.py": True, f"{pre}{new}.compile.lock": True,                               # this build: kept
+        f"__pycache__/{pre}{new}.advance-329.py311.nbi": True,
+        f"__pycache__/{pre}{new}.advance-329.py311.1.nbc": True,
+        f"{pre}{old}.py": False, f"{pre}{old}.compile.lock": False,                             # a stale build: gone
+        f"__pycache__/{pre}{old}.advance-329.py311.nbi": False,
+        f"__pycache__/{pre}{old}.advance-329.py311.1.nbc": False,
+        f"advance1__n3__proposed__leso__barrier__{old}.py": True,                               # other kernels
+        f"__pycache__/advance1__n3__proposed__leso__barrier__{old}.advance-329.py311.nbi": True,
+        f"advance1__n3__proposed__leso__barrier_plain__{old}.py": True,
+        f"advance1__n3__proposed__leso2__{old}.py": True,
+        f"advance4__n3__proposed__leso__{old}.py": True,                                        # the other width
+        f"glue_proposed__leso__n3__{old}ab.py": True,
     }
+    (tmp_path / "__pycache__").mkdir()
     for name in names:
         (tmp_path / name).write_text("x")
-    gone = remove_stale_cache(tmp_path, "advance__n3__proposed__leso__", new)
-    assert sorted(p.name for p in gone) == sorted(k for k, keep in names.items() if not keep)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(k for k, keep in names.items() if keep)
+    gone = remove_stale_cache(tmp_path, pre, new)
+    assert sorted(p.relative_to(tmp_path).as_posix() for p in gone) == sorted(k for k, keep in names.items() if not keep)
+    left = sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*") if p.is_file())
+    assert left == sorted(k for k, keep in names.items() if keep)
 
 
 def test_building_one_kernel_leaves_the_others_in_the_disk_cache():

@@ -79,7 +79,7 @@ LIBRARY_INTERNALS = {
     ("blf_gym.jit.sources", "_impl_class()._locator_classes"): "numba's list of cache locators, where ours is put",
     ("blf_gym.jit.views", "out._getvalue"): "numba's struct proxy: the documented way to return an LLVM value "
                                             "from an intrinsic's codegen",
-    ("blf_gym.kernel.simulate", "out._getvalue"): "as above",
+    ("blf_gym.kernel.templates", "out._getvalue"): "as above",
     ("blf_gym.kernel.simulate", "dispatcher._cache"): "numba's cache folder and index (_cache_dir, _is_cached): "
                                                       "to say where the kernel is cached and whether it compiles",
     ("blf_gym.kernel.simulate", "dispatcher._cache._cache_path"): "as above",

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from blf_gym.jit import layout as L
-from blf_gym.model.params import ArmParams, Scenario, joint_scenario, preset
+from blf_gym.model.params import ArmParams, joint_scenario, preset
 
 ROOT = Path(__file__).resolve().parents[1]
 

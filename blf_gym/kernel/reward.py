@@ -2,9 +2,9 @@
 
 Each per-sample reward term is one row (a :class:`RewardTerm`): its name (the weight's field in
 :class:`RewardWeights` and its key in ``info["reward_info"]``), its compiled per-sample function,
-its default weight, unit, bound and meaning. The kernel calls :func:`accumulate_sample` at every 1 ms
-sample; that function is generated from the table and adds each row's value to its column of
-:data:`SUM_COLUMNS`. The env turns one agent step's sums into the reward with :func:`step_outputs`,
+its default weight, unit, bound and meaning. The kernel calls ``accumulate_sample`` at every 1 ms
+sample; that function is written from the table into each build of the kernel
+(:func:`accumulate_source`) and adds each row's value to its column of :data:`SUM_COLUMNS`. The env turns one agent step's sums into the reward with :func:`step_outputs`,
 which reads the weights in the table's order. A new term is one row (and its function), with a
 default weight of 0 so existing agents score the same: docs/extending.md, "A reward term".
 """
@@ -24,7 +24,7 @@ from blf_gym.model.bounds import KA, KB
 from blf_gym.model.params import check_bool, check_real
 from blf_gym.kernel.status import ST_DIVERGED, ST_VIOL_SAMPLES, ST_VIOL_STEPS
 
-__all__ = ["TERMS", "RewardTerm", "SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_sample",
+__all__ = ["TERMS", "RewardTerm", "SUM_COLUMNS", "RewardWeights", "SCORE_REWARD", "PHI_CAP", "accumulate_source",
            "step_outputs", "score_step"]
 
 PHI_CAP = 50.0
@@ -108,24 +108,25 @@ def errors_into(x, ref, bnd, sums, n):
     return bad
 
 
-def _generate_accumulate():
-    """:func:`accumulate_sample`, written from :data:`TERMS` (one line per row) and compiled inline."""
-    lines = ["def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):",
-             "    bad = errors_into(x, ref, bnd, sums, n)"]
-    lines += [f"    sums[{SUM_TERM0 + k}] += term_{k}(x, y, ref, bnd, u, cout, umax, n)  # {t.name}"
+ACCUMULATE_IMPORT = "from blf_gym.kernel.reward import SUM_SAMPLES, TERMS, errors_into"
+"""What :func:`accumulate_source`'s function reads, imported at the top of a kernel's build."""
+
+
+def accumulate_source() -> str:
+    """The source of ``accumulate_sample``, written from :data:`TERMS` (one line per row) into each
+    build of the kernel (:func:`blf_gym.kernel.simulate.build_source`), where it is compiled inline:
+    it adds one 1 ms sample to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per joint), each
+    term and the sample count, and returns whether the sample violates a bound. The arguments are
+    RewardTerm.sample's. It reads the names of :data:`ACCUMULATE_IMPORT`."""
+    lines = [f"_term_{k} = TERMS[{k}].sample  # {t.name}" for k, t in enumerate(TERMS)]
+    lines += ["", "", '@njit(cache=True, error_model="numpy", inline="always")',
+              "def accumulate_sample(x, y, ref, bnd, u, cout, umax, sums, n):",
+              '    """One 1 ms sample into the sums: each term of TERMS, the count; True if it violates."""',
+              "    bad = errors_into(x, ref, bnd, sums, n)"]
+    lines += [f"    sums[{SUM_TERM0 + k}] += _term_{k}(x, y, ref, bnd, u, cout, umax, n)  # {t.name}"
               for k, t in enumerate(TERMS)]
     lines += ["    sums[SUM_SAMPLES] += 1.0", "    return bad", ""]
-    scope = {"errors_into": errors_into, "SUM_SAMPLES": SUM_SAMPLES, **{f"term_{k}": t.sample for k, t in enumerate(TERMS)}}
-    exec(compile("\n".join(lines), "<blf_gym.kernel.reward: accumulate_sample, generated from TERMS>", "exec"), scope)  # noqa: S102
-    fn = scope["accumulate_sample"]
-    fn.__module__ = __name__
-    fn.__doc__ = """Add one 1 ms sample to the row ``sums`` (columns of SUM_COLUMNS, then e1^2 per
-    joint): each term of TERMS and the sample count; returns whether the sample violates a bound.
-    Generated from TERMS; the arguments are RewardTerm.sample's."""
-    return njit(error_model="numpy", inline="always")(fn)
-
-
-accumulate_sample = _generate_accumulate()
+    return "\n".join(lines)
 
 
 WVEC_HEAD = ("relative", "relative_cap", "alive", "violation", "terminate_on_violation", "violation_rate")

@@ -5,15 +5,28 @@ the Gymnasium env (one arm, one agent period per call) and the vector env (N arm
 over threads: the compiled kernel releases the GIL). Arms are stepped in blocks of lanes in
 lockstep, laid out lanes innermost (:func:`lane_layout`): one lane by default, :data:`LANES` with
 ``ClosedLoop(lanes=LANES)``, where the per-arm code vectorises across arms (docs/model.md
-section 6). It is specialised per (controller law,
-observer) pair by cloning the template functions below with the law and observer bound as
-globals, then compiled by numba with ``cache=True`` so a warm start loads machine code from disk.
+section 6).
 
 Integration (docs/model.md section 6): Bogacki-Shampine ODE3, fixed step h, with the law and the observer
 evaluated at every stage on the measured angles y = q(stage) + noise (the noise sample is held
 over a step). Constraints are checked after every step; trajectories and metrics use the 1 ms
 grid. A step outside ODE3's stability region is detected from the method's embedded error
 estimate, even when the actuator limit keeps the state finite.
+
+**How a kernel is built: generated modules, one style for the kernel and the glue.** The kernel is
+specialised per connection (controller, observer, residual filter, n) and block width, so that every
+size, offset and plug-in call is a compile-time constant numba can inline and LLVM can unroll. Each
+specialisation, the kernel here and the plug-ins' glue in :func:`blf_gym.plugins.blocks.connect`,
+is Python source generated as text and imported from a file by :mod:`blf_gym.jit.codegen`:
+:func:`build_source` writes a module that imports the helpers of :mod:`blf_gym.kernel.templates`,
+assigns the build's constants (:data:`blf_gym.kernel.templates.BUILD_NAMES`), binds the glue,
+writes the reward's per-sample sum from :data:`blf_gym.kernel.reward.TERMS`, and copies the source
+of the templates. Why this style and not the two others we had (cloning the templates' function
+objects with injected globals; ``exec`` of a string): a generated module is a file, so numba caches it
+like any other (the file's name carries the digest of everything that went into it) and a person
+can open, read, lint and step through exactly the code that runs; every name in it, and every name
+in the templates (where the build's names are placeholders), resolves for a linter or an editor;
+and nothing calls ``exec``. tests/test_codegen.py lints a generated kernel and glue with pyflakes.
 
 State layout per arm, ``X[b]``: ``[q, qd, observer states, controller states]`` (5n with the LESO).
 """
@@ -22,6 +35,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import inspect
 import os
 import sys
 import time
@@ -31,39 +45,19 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-from numba import njit
 from blf_gym.jit import sources  # noqa: F401  (before any @njit: numba's cache keys on each module's import closure)
-from numba import types as nbtypes
-from numba.core import cgutils
-from numba.core.imputils import impl_ret_borrowed
-from numba.extending import intrinsic
-from numba.np.arrayobj import populate_array
 
-from blf_gym.jit import vmath
-from blf_gym.model.bounds import BOUND_LEN, KA, KB, bounds_exponent, bounds_from, bounds_into
-from blf_gym.plugins.blocks import (Connection, Controller, Observer, ResidualFilter, connect, nominal_length,
-                     nominal_terms_into, work_length)
-from blf_gym.plugins.registry import make_controller, make_observer
-from blf_gym.jit.layout import (ARM, BOUNDS, CHANNELS, EXP_ARGS, FLAGS, KERNEL_WORK, NOMINAL, PENDING, PLANT, PLANT_TAIL,
-                                RECORD, REF, REFERENCE, STATE, TAIL, TRIG, TRIG_ARGS, at, block_layout, part)
-from blf_gym.model.dynamics import (
-    abs_trig_into,
-    ldl_factor_into,
-    ldl_solve_factored,
-    ldl_solve_into,
-    coriolis_times_into,
-    gravity_into,
-    mass_matrix_into,
-    wrench_torque_into,
-)
+from blf_gym.jit.codegen import load_module
+from blf_gym.jit.layout import BOUNDS, CHANNELS, PLANT, REFERENCE, STATE, block_layout
+from blf_gym.kernel import reward, templates
+from blf_gym.kernel.reward import SUM_E2_JOINT
+from blf_gym.kernel.status import (N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES, ST_DIVERGED, ST_FILTER_BREACHES,
+                                   ST_FIRST_VIOL, ST_SAT_STEPS, ST_STEPS, ST_VIOL_STEPS)
+from blf_gym.kernel.templates import LANES, N_CHANNELS, TEMPLATES
 from blf_gym.model.params import Scenario, check_int, usable_cores
-from blf_gym.kernel.reward import SUM_E2_JOINT, SUM_ERR_MAX, accumulate_sample
-from blf_gym.jit.views import fixed
-from blf_gym.kernel.status import (LAST_SAT, LAST_U, LAST_ULAW, LAST_X3, LAST_X3HAT, N_LAST, N_STATUS, ST_ASSUMPTION_FAILURES,
-                     ST_DIVERGED, ST_FILTER_BREACHES, ST_FIRST_VIOL, ST_SAT_STEPS, ST_STEPS, ST_VIOL_SAMPLES,
-                     ST_VIOL_STEPS)
-from blf_gym.model.reference import reference_angle, reference_from, reference_into
-from blf_gym.model.uncertainty import dead_zone, force_active, friction, friction_exponent, friction_from
+from blf_gym.plugins.blocks import Connection, Controller, Observer, ResidualFilter, connect
+from blf_gym.plugins.registry import make_controller, make_observer
+from blf_gym.results.io import cache_dir
 
 __all__ = [
     "Batch",
@@ -74,282 +68,6 @@ __all__ = [
     "simulate",
     "simulate_batch",
 ]
-
-N_CHANNELS = len(CHANNELS)
-# Each channel's row in a record (blf_gym.jit.layout.RECORD; the kernel freezes these into its code).
-(_CH_T, _CH_Q, _CH_QD, _CH_QREF, _CH_QDREF, _CH_E1, _CH_KA, _CH_KB, _CH_U, _CH_HU, _CH_ULAW, _CH_SAT, _CH_X3,
- _CH_X3HAT, _CH_X2HAT, _CH_X1HAT, _CH_Y) = (RECORD.index(c) for c in (
-    "t", "q", "qd", "q_ref", "qd_ref", "e1", "k_a", "k_b", "u", "h_u", "u_law", "saturated", "x3", "x3_hat",
-    "x2_hat", "x1_hat", "y"))
-
-# Offsets within the plant's scalars (the tail after the arm) and, as triples for at(), in the
-# packed plant vector: blf_gym.jit.layout.PLANT.
-_VISC, _COUL, _PSI = (TAIL.index(k) for k in ("viscous", "coulomb", "tanh_slope"))
-_HR, _HL, _TR, _TL = (TAIL.index(k) for k in ("slope_right", "slope_left", "break_right", "break_left"))
-_P_ARM, _P_TAIL, _SIZE_ARM, _SIZE_TAIL = PLANT.start("lengths"), PLANT.start(PLANT_TAIL[0]), ARM.total, TAIL.total
-_P_FX, _P_MZ, _P_ONSET = PLANT.start("f_x"), PLANT.start("moment"), PLANT.start("onset")
-_P_UMAX, _P_DIVLIM, _P_RTOL, _P_ATOL = (PLANT.start(k) for k in ("max_torque", "divergence_limit", "error_rtol",
-                                                                  "error_atol"))
-_P_UNSTABLE = PLANT.start("unstable_steps")
-# the state's head, the reference signal, the pending sample, the nominal signal, the kernel's work
-_S_Q, _S_QD, _S_OBS, _SIZE_N = STATE.start("q"), STATE.start("qd"), STATE.total, STATE.size("q")
-_R_Q, _R_QD = REF.start("q_d"), REF.start("qd_d")
-_PD_Q, _PD_QD, _PD_QDD, _PD_U = (PENDING.start(k) for k in ("q", "qd", "qdd", "u"))
-_NOM_M, _NOM_G, _NOM_TRIG, _NOM_L, _NOM_ARM = (NOMINAL.start(k) for k in ("M", "G", "trig", "L", "arm"))
-_KW_TRIG, _KW_C, _KW_G, _KW_JF, _KW_RHS, _KW_NOM = (KERNEL_WORK.start(k) for k in (
-    "trig", "coriolis", "gravity", "wrench", "rhs", "nominal"))
-_SIZE_TRIG, _SIZE_KW_NOM = TRIG.total, KERNEL_WORK.size("nominal")
-_T_COS, _T_SIN = TRIG.start("cos"), TRIG.start("sin")
-_A_PLANT, _A_MEAS, _A_REF, _A_END = (*(TRIG_ARGS.start(k) for k in ("plant", "measured", "reference")), TRIG_ARGS.total)
-_E_FRIC, _E_BOUNDS, _E_END = EXP_ARGS.start("friction"), EXP_ARGS.start("bounds"), EXP_ARGS.total
-
-
-@njit(cache=True, error_model="numpy")
-def _lumped_true(q, qd, qdd, u, nominal, out, M, L, work):
-    """x3 = qdd - F_nom(q, qd) - M_nom^-1 u = M_nom^-1 (M_nom qdd + C_nom qd + G_nom - u)."""
-    n = q.shape[0]
-    trig = part(work, _KW_TRIG, _SIZE_TRIG, n)
-    c = part(work, _KW_C, _SIZE_N, n)
-    g = part(work, _KW_G, _SIZE_N, n)
-    r = part(work, _KW_RHS, _SIZE_N, n)
-    abs_trig_into(q, trig)
-    mass_matrix_into(trig, nominal, M, work)
-    coriolis_times_into(trig, qd, qd, nominal, c, work)
-    gravity_into(trig, nominal, g, work)
-    for i in range(n):
-        acc = 0.0
-        for j in range(n):
-            acc += M[i * n + j] * qdd[j]
-        r[i] = acc + c[i] + g[i] - u[i]
-    ldl_solve_into(M, r, out, L)
-
-
-def _lane_intrinsic(lanes: int):
-    """The intrinsic ``_lane(block, start, length, b)``: lane ``b``'s entries ``start`` to
-    ``start + length`` of a block laid out lanes-innermost (entry s of lane b at ``s * lanes + b``),
-    as a 1-D view with the constant stride ``lanes`` elements.
-
-    This is the batched kernel's layout: one block holds ``lanes`` arms side by side, so the same
-    entry of consecutive arms is contiguous and a loop over the lanes of per-arm code (plug-ins
-    included, unchanged) vectorises. A constant stride lets LLVM prove the lanes independent."""
-
-    @intrinsic
-    def _lane(typingctx, block, start, length, b):
-        if not (isinstance(block, nbtypes.Array) and block.ndim == 1 and block.layout == "C"):
-            return None
-        out_t = nbtypes.Array(block.dtype, 1, "A")
-        sig = out_t(block, nbtypes.intp, nbtypes.intp, nbtypes.intp)
-
-        def codegen(context, builder, signature, args):
-            src = context.make_array(signature.args[0])(context, builder, args[0])
-            out = context.make_array(out_t)(context, builder)
-            itemsize = context.get_abi_sizeof(context.get_data_type(block.dtype))
-            first = builder.add(builder.mul(args[1], context.get_constant(nbtypes.intp, lanes)), args[3])
-            populate_array(out, data=builder.gep(src.data, [first]), shape=cgutils.pack_array(builder, [args[2]]),
-                           strides=cgutils.pack_array(builder, [context.get_constant(nbtypes.intp, lanes * itemsize)]),
-                           itemsize=src.itemsize, meminfo=src.meminfo, parent=src.parent)
-            return impl_ret_borrowed(context, builder, out_t, out._getvalue())
-
-        return sig, codegen
-
-    return _lane
-
-
-@intrinsic
-def _claim(typingctx, counter):
-    """``_claim(counter)``: atomically add one to ``counter[0]`` and return its value before, so
-    that threads running the kernel on the same batch each take the next block no other has
-    taken (the blocks go to whichever thread is free, so none waits for a slower one)."""
-    if not (isinstance(counter, nbtypes.Array) and counter.ndim == 1 and counter.dtype == nbtypes.int64):
-        return None
-    sig = nbtypes.int64(counter)
-
-    def codegen(context, builder, signature, args):
-        arr = context.make_array(signature.args[0])(context, builder, args[0])
-        return builder.atomic_rmw("add", arr.data, context.get_constant(nbtypes.int64, 1), "monotonic")
-
-    return sig, codegen
-
-
-LANES = 4
-"""Arms per block of the batched kernel (``ClosedLoop(lanes=LANES)``): one AVX2 vector of doubles.
-A batch of N arms is stepped as ceil(N / LANES) blocks; the default build is the same code compiled
-for one lane."""
-_lane1 = _lane_intrinsic(1)
-_laneN = _lane_intrinsic(LANES)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _violates(e_or_q, ref, bnd, n):
-    """True if any joint's error q - q_d is outside (-k_b, k_a) (first n entries of ``e_or_q``)."""
-    for i in range(n):
-        e = e_or_q[i] - ref[i]
-        if e >= bnd[KA] or e <= -bnd[KB]:
-            return True
-    return False
-
-
-@njit(cache=True, error_model="numpy")
-def _record(r, t, x, y, ref, bnd, u, hu, ulaw, satf, x3, o1, o2, o3):
-    """Write one 1 ms sample (the channels of CHANNELS) into ``r`` (channels, n). ``o1``, ``o2``,
-    ``o3`` are the offsets of x1_hat, x2_hat, x3_hat in the state, -1 for one the observer lacks."""
-    n = y.shape[0]
-    for i in range(n):
-        r[_CH_T, i] = t
-        r[_CH_Q, i] = x[at(_S_Q, n) + i]
-        r[_CH_QD, i] = x[at(_S_QD, n) + i]
-        r[_CH_QREF, i] = ref[at(_R_Q, n) + i]
-        r[_CH_QDREF, i] = ref[at(_R_QD, n) + i]
-        r[_CH_E1, i] = x[at(_S_Q, n) + i] - ref[at(_R_Q, n) + i]
-        r[_CH_KA, i] = bnd[KA]
-        r[_CH_KB, i] = bnd[KB]
-        r[_CH_U, i] = u[i]
-        r[_CH_HU, i] = hu[i]
-        r[_CH_ULAW, i] = ulaw[i]
-        r[_CH_SAT, i] = satf[i]
-        r[_CH_X3, i] = x3[i]
-        r[_CH_X3HAT, i] = x[o3 + i] if o3 >= 0 else np.nan
-        r[_CH_X2HAT, i] = x[o2 + i] if o2 >= 0 else np.nan
-        r[_CH_X1HAT, i] = x[o1 + i] if o1 >= 0 else np.nan
-        r[_CH_Y, i] = y[i]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _ode3_update(x, K0, K1, K2, dt, divlim, xn, ep):
-    """The Bogacki-Shampine step: the new state into ``xn``, the embedded estimate's first part
-    into ``ep``; False if an entry is non-finite or beyond ``divlim``."""
-    ok = True
-    for i in range(x.shape[0]):
-        ep[i] = (-5.0 / 72.0) * K0[i] + (1.0 / 12.0) * K1[i] + (1.0 / 9.0) * K2[i]
-        v = x[i] + dt * ((2.0 / 9.0) * K0[i] + (1.0 / 3.0) * K1[i] + (4.0 / 9.0) * K2[i])
-        if not (abs(v) <= divlim):  # also catches NaN
-            ok = False
-        xn[i] = v
-    return ok
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _error_ratio(ep, K3, xn, dt, atol, rtol):
-    """The step's embedded second-order error estimate over its tolerance, worst entry (K3 is the
-    evaluation at the new state with the step's own inputs, docs/model.md section 9)."""
-    en = 0.0
-    for i in range(xn.shape[0]):
-        e = abs(dt * (ep[i] - 0.125 * K3[i])) / (atol + rtol * abs(xn[i]))
-        if e > en:
-            en = e
-    return en
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _stage_input(st, x, K0, K1, dt, xs):
-    """The state at which ODE3 stage ``st`` (0, 1, 2) is evaluated, into ``xs``."""
-    if st == 0:
-        for i in range(x.shape[0]):
-            xs[i] = x[i]
-    elif st == 1:
-        for i in range(x.shape[0]):
-            xs[i] = x[i] + 0.5 * dt * K0[i]
-    else:
-        for i in range(x.shape[0]):
-            xs[i] = x[i] + 0.75 * dt * K1[i]
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _instability(en, noisy, sps, err_run, unstable_steps):
-    """The count of consecutive unstable steps after one check with error ratio ``en``, and whether
-    the run is now diverged (a noisy arm's check counts for its sample period's steps)."""
-    if en > 1.0:
-        err_run += 1 if not noisy else sps
-        return err_run, err_run >= unstable_steps
-    return 0, False
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
-    """At the start of step ``j`` (global ``k``), state ``x``: the constraint check of the state the
-    previous step produced and the saturation count, into the status row ``st``; returns True if
-    the arm must stop (a violation with ``terminate``)."""
-    if j > 0 and _violates(x, ref, bnd, n):
-        st[ST_VIOL_STEPS] += 1
-        if st[ST_FIRST_VIOL] < 0:
-            st[ST_FIRST_VIOL] = k
-        if terminate:
-            return True
-    for i in range(n):
-        if satf[i] > 0.0:
-            st[ST_SAT_STEPS] += 1
-            break
-    return False
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, ang, sn, cs, ex, ev, n,
-                one_lane):
-    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.jit.vmath`:
-    sin and cos, acos, atan2, exp), for one lane: the reference and the bounds at ``ts``, the
-    measurement y, the cos and sin of the plant's and the nominal model's link angles, and the
-    friction torques. It runs in a loop of its own, so that the rest of the stage, in
-    :func:`_lanes_template`, vectorises across lanes.
-
-    Compiled for one lane, the 2n + 1 angles (the plant's links, the measured links, the
-    reference's) go through one loop of ``sincos`` and the n + 1 exponents (the friction's, the
-    bounds') through one loop of ``exp``, padded to whole vectors (``ang``/``sn``/``cs`` and
-    ``ex``/``ev``), so that the single arm's calls vectorise too. In a block the lanes vectorise
-    instead. Either way every number is the same function of the same argument, so a block's arms
-    and single arms agree bit for bit."""
-    same = True
-    for i in range(n):
-        y[i] = q[i] + nz[i]
-        if y[i] != q[i]:
-            same = False
-    if one_lane:
-        a_pl, a_me, a_rf, e_fr, e_bd = at(_A_PLANT, n), at(_A_MEAS, n), at(_A_REF, n), at(_E_FRIC, n), at(_E_BOUNDS, n)
-        c0, s0 = at(_T_COS, n), at(_T_SIN, n)
-        th = 0.0
-        thy = 0.0
-        for j in range(n):
-            th += q[j]
-            thy += y[j]
-            ang[a_pl + j] = th
-            ang[a_me + j] = thy
-        ang[a_rf] = reference_angle(ts, rp)
-        for i in range(at(_A_END, n), ang.shape[0]):
-            ang[i] = 0.0
-        for i in range(ang.shape[0]):
-            sn[i], cs[i] = vmath.sincos(ang[i])
-        for j in range(n):
-            trig[c0 + j] = cs[a_pl + j]
-            trig[s0 + j] = sn[a_pl + j]
-            ntrig[c0 + j] = cs[a_me + j]
-            ntrig[s0 + j] = sn[a_me + j]
-        reference_from(sn[a_rf], cs[a_rf], rp, arm, ref)
-        for i in range(n):
-            ex[e_fr + i] = friction_exponent(qd[i], tail[_PSI])
-        ex[e_bd] = bounds_exponent(ts, bp)
-        for i in range(at(_E_END, n), ex.shape[0]):
-            ex[i] = 0.0
-        for i in range(ex.shape[0]):
-            ev[i] = vmath.exp(ex[i])
-        bounds_from(ev[e_bd], bp, bnd)
-        for i in range(n):
-            fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[e_fr + i])
-    else:
-        reference_into(ts, rp, arm, ref)
-        bounds_into(ts, bp, bnd)
-        abs_trig_into(q, trig)
-        abs_trig_into(y, ntrig)  # without noise y == q, and these are the same numbers
-        for i in range(n):
-            fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
-    return same
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _copy(src, dst):
-    """dst[:] = src[:len(dst)] (the kernel allocates nothing, so no slice assignment)."""
-    for i in range(dst.shape[0]):
-        dst[i] = src[i]
-
-
 def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_gains: int, n_obs_gains: int,
                 n_filter_gains: int) -> dict[str, tuple[int, int]]:
     """The per-lane entries of a block of the batched kernel, name -> (offset, length) in lane
@@ -359,477 +77,9 @@ def lane_layout(n: int, n_obs: int, n_ctrl: int, n_out: int, n_fout: int, n_law_
     return {**pack.offsets(n), "_total": (pack.length(n), 0)}
 
 
-# per-lane flags of a block (floats, 1.0 true): blf_gym.jit.layout.FLAGS
-(_F_NOISY, _F_PENDING, _F_HALT, _F_CHECK, _F_OK, _F_STOPPED, _F_K0, _F_SAME_ARM, _F_SAME_Y) = (FLAGS.index(f) for f in (
-    "noisy", "pending", "halt", "check", "ok", "stopped", "k0", "same_arm", "same_y"))
-_N_FLAGS = FLAGS.length()
-
-
-# long: the kernel's time loop is one compiled function (numba inlines nothing across a call to a
-# generated closure's globals, and a split would put the lanes' state through argument tuples)
-def _lanes_template(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains, residual,
-                    noise, terminate, plain, rec, nrec, status, last, scratch, sums, unstable_run, taken):
-    """Advance every arm b by up to ``n_steps`` ODE3 steps from global step ``ksteps[b]``, the arms
-    in blocks of ``_LN`` lanes stepped in lockstep (``scratch[k]`` is block k, laid out by
-    :func:`lane_layout`, lanes innermost).
-
-    A block is loaded (:func:`_load_block_template`), stepped, and stored back
-    (:func:`_store_block_template`). One step is: its lanes' inputs (:func:`_begin_step_template`),
-    the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and the rest of the right-hand
-    side, in two loops over the lanes), the step's bookkeeping at its start
-    (:func:`_sample_template`: violations, the reward's sums, the record), the update
-    (:func:`_ode3_update`), the instability check (:func:`_check_stability_template`) and the commit
-    (:func:`_commit_template`). The parts are cloned with the kernel's bindings and inlined. Every lane computes every stage the block needs; a lane's own control
-    flow (stopped, noisy, first-same-as-last, instability checks) only decides what it keeps, so
-    each arm's numbers are those it would get alone.
-
-    The rest of a stage evaluation at (ts, x), for one lane, into ``dx``: branch-free where the lanes
-    may differ, so that its loop over the lanes vectorises. The measurement is y = q(stage) + noise,
-    the noise sample held over the step, so without noise the law and the observer see the angles at
-    every stage like Simulink's continuous blocks. ``x`` = [q, qd, observer states, controller
-    states]. ``_ctrl_output``, ``_obs_rhs`` and ``_ctrl_update`` are the generated glue of
-    :func:`blf_gym.plugins.blocks.connect`, bound with the sizes ``_N``, ``_NO``, ``_NC`` by
-    :func:`_specialise`; with a residual filter (``_FILTER``), ``_res_filter`` turns the residual
-    (with ``plain``, a runtime flag, the agent's torque minus u_law) into ``fout[:n]``. The nominal
-    model is evaluated at y, from the cos and sin :func:`_stage_trig` left in it; when the nominal
-    arm is the plant's and y == q that gives the plant's own numbers, which a one-lane kernel copies
-    instead (``copy_model``; in a block the lanes would take different branches).
-
-    Instability check (docs/model.md section 9): a step's embedded Bogacki-Shampine error estimate
-    needs the fourth evaluation f(t + h, x_new) *with the step's own inputs* (measurement noise
-    sample, residual). Without noise it is checked at every step, and that evaluation is the next
-    step's first one when the inputs stay the same (first-same-as-last); at the last step of a call
-    it is evaluated anyway, since the next call may bring new inputs. With noise, whose sample
-    changes every step, it is evaluated at every step ending a 1 ms sample period (global step
-    index, so every path checks the same steps) and counts for that many steps.
-    ``unstable_run[b]`` carries the count of consecutive unstable steps across calls, so the verdict
-    does not depend on how a run is cut into calls.
-
-    Stops an arm early on divergence (state restored to the last finite one) or, when
-    ``terminate``, right after the first step whose end state violates a bound. Records the
-    channels of :data:`CHANNELS` into ``rec[b]`` at every step index divisible by ``sps``.
-
-    The blocks are taken in turn through ``taken[0]`` (:func:`_claim`): several threads may run the
-    kernel on the same arrays at once, each block stepped by exactly one of them.
-    """
-    N = X.shape[0]
-    n = _N  # noqa: F821 (the number of joints, a compile-time constant bound at specialisation)
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821 (lanes per block)
-    n_blocks = (N + LN - 1) // LN
-    while True:
-        block = _claim(taken)
-        if block >= n_blocks:
-            break
-        work = scratch[block]
-        arm0 = block * LN
-        _load_block(work, arm0, N, n_steps, X, ksteps, plant, nominal, rp, bp, lg, og, fgains, residual, noise,  # noqa: F821
-                    status, sums)
-        any_fsal = False  # every active lane's stage 0 is its last step's check evaluation
-        for j in range(n_steps):
-            n_active, any_check = _begin_step(work, arm0, N, j, sps, noise)  # noqa: F821
-            if n_active == 0:
-                break
-            for stage in range(4):
-                if stage == 0 and any_fsal:
-                    # the check's evaluation at this state, with these inputs, was last step's: K3
-                    for b in range(LN):
-                        _copy(_lane(work, _L_K3, nx, b), _lane(work, _L_K0, nx, b))  # noqa: F821
-                elif stage == 3:
-                    # the update; a lane whose state turns non-finite or leaves the limit halts
-                    for b in range(LN):
-                        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-                        ok = _ode3_update(_lane(work, _L_x, nx, b), _lane(work, _L_K0, nx, b), _lane(work, _L_K1, nx, b),  # noqa: F821
-                                          _lane(work, _L_K2, nx, b), dt, plant_l[at(_P_DIVLIM, n)],  # noqa: F821
-                                          _lane(work, _L_xn, nx, b), _lane(work, _L_ep, nx, b))  # noqa: F821
-                        flags[_F_OK] = 1.0 if ok else 0.0
-                    if not any_check:
-                        break
-                if stage > 0 or not any_fsal:
-                    # the stage's time and state, then the two parts of the evaluation, each a
-                    # loop over the lanes with the same code for every lane (they vectorise)
-                    for b in range(LN):
-                        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        xs = _lane(work, _L_xs, nx, b)  # noqa: F821
-                        if stage < 3:
-                            _stage_input(stage, _lane(work, _L_x, nx, b), _lane(work, _L_K0, nx, b), _lane(work, _L_K1, nx, b), dt,  # noqa: F821
-                                         xs)
-                        else:
-                            _copy(_lane(work, _L_xn, nx, b), xs)  # noqa: F821
-                        k = np.int64(flags[_F_K0]) + j
-                        t = k * dt
-                        _lane(work, _L_ts, 1, b)[0] = (t if stage == 0 else (t + 0.5 * dt if stage == 1 else  # noqa: F821
-                                                    (t + 0.75 * dt if stage == 2 else (k + 1) * dt)))
-                    for b in range(LN):
-                        same_y = _stage_trig(_lane(work, _L_ts, 1, b)[0], _lane(work, _L_xs + at(_S_Q, n), n, b),  # noqa: F821
-                                    _lane(work, _L_xs + at(_S_QD, n), n, b),  # noqa: F821
-                                    _lane(work, _L_nz, n, b), _lane(work, _L_y, n, b),  # noqa: F821
-                                    _lane(work, _L_rp, _NRP, b), _lane(work, _L_plant + at(_P_ARM, n), at(_SIZE_ARM, n), b),  # noqa: F821
-                                    _lane(work, _L_plant + at(_P_TAIL, n), at(_SIZE_TAIL, n), b), _lane(work, _L_bp, _NBP, b),  # noqa: F821
-                                    _lane(work, _L_ref, _NREF, b), _lane(work, _L_bnd, BOUND_LEN, b),  # noqa: F821
-                                    _lane(work, _L_pw + at(_KW_TRIG, n), at(_SIZE_TRIG, n), b),  # noqa: F821
-                                    _lane(work, _L_nom + at(_NOM_TRIG, n), at(_SIZE_TRIG, n), b),  # noqa: F821
-                                    _lane(work, _L_fr, n, b), _lane(work, _L_ang, _NANG, b), _lane(work, _L_sn, _NANG, b),  # noqa: F821
-                                    _lane(work, _L_cs, _NANG, b), _lane(work, _L_ex, _NEX, b), _lane(work, _L_ev, _NEX, b),  # noqa: F821
-                                    n, LN == 1)  # noqa: F821
-                        _lane(work, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0  # noqa: F821
-                    for b in range(LN):
-                        # the rest of the evaluation at (tb, xs) into dx, written here rather than
-                        # inlined from a function of its own: numba copies an inlined function's
-                        # whole IR, and this part, with the plug-ins in it, is most of the kernel
-                        tb = _lane(work, _L_ts, 1, b)[0]  # noqa: F821
-                        flags_b = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-                        copy_model = LN == 1 and flags_b[_F_SAME_ARM] != 0.0 and flags_b[_F_SAME_Y] != 0.0
-                        x = _lane(work, _L_xs, nx, b)  # noqa: F821
-                        y = _lane(work, _L_y, n, b)  # noqa: F821
-                        res = _lane(work, _L_res, n, b)  # noqa: F821
-                        plant_b = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-                        nom = _lane(work, _L_nom, nominal_length(n), b)  # noqa: F821
-                        lgb = _lane(work, _L_lg, _NLG, b)  # noqa: F821
-                        ogb = _lane(work, _L_og, _NOG, b)  # noqa: F821
-                        fg = _lane(work, _L_fg, _NFG, b)  # noqa: F821
-                        ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
-                        bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
-                        cout = _lane(work, _L_cout, _NOUT, b)  # noqa: F821
-                        fout = _lane(work, _L_fout, _NFOUT, b)  # noqa: F821
-                        rr = _lane(work, _L_rr, n, b)  # noqa: F821
-                        u = _lane(work, _L_u, n, b)  # noqa: F821
-                        hu = _lane(work, _L_hu, n, b)  # noqa: F821
-                        satf = _lane(work, _L_satf, n, b)  # noqa: F821
-                        dx = _lane(work, _L_dx, nx, b)  # noqa: F821 (a constant offset: see below)
-                        pw = _lane(work, _L_pw, _NPW, b)  # noqa: F821
-                        Mp = _lane(work, _L_Mp, n * n, b)  # noqa: F821
-                        Lp = _lane(work, _L_Lp, n * n, b)  # noqa: F821
-                        wl = _lane(work, _L_wl, work_length(n), b)  # noqa: F821
-                        wo = _lane(work, _L_wo, work_length(n), b)  # noqa: F821
-                        fr = _lane(work, _L_fr, n, b)  # noqa: F821
-                        arm = part(plant_b, _P_ARM, _SIZE_ARM, n)
-                        q = part(x, _S_Q, _SIZE_N, n)
-                        qd = part(x, _S_QD, _SIZE_N, n)
-                        xo = fixed(x, at(_S_OBS, n), _NO)  # noqa: F821
-                        xc = fixed(x, at(_S_OBS, n) + _NO, _NC)  # noqa: F821
-                        dxo = fixed(dx, at(_S_OBS, n), _NO)  # noqa: F821
-                        dxc = fixed(dx, at(_S_OBS, n) + _NO, _NC)  # noqa: F821
-                        trig = part(pw, _KW_TRIG, _SIZE_TRIG, n)
-                        c = part(pw, _KW_C, _SIZE_N, n)
-                        g = part(pw, _KW_G, _SIZE_N, n)
-                        jf = part(pw, _KW_JF, _SIZE_N, n)
-                        rhs = part(pw, _KW_RHS, _SIZE_N, n)
-                        mass_matrix_into(trig, arm, Mp, pw)
-                        gravity_into(trig, arm, g, pw)
-                        ldl_factor_into(Mp, Lp)
-                        if copy_model:
-                            for i in range(n * n):
-                                nom[at(_NOM_M, n) + i] = Mp[i]
-                                nom[at(_NOM_L, n) + i] = Lp[i]
-                            for i in range(n):
-                                nom[at(_NOM_G, n) + i] = g[i]
-                        else:
-                            nominal_terms_into(part(nom, _NOM_ARM, _SIZE_ARM, n), nom, part(pw, _KW_NOM, _SIZE_KW_NOM, n))
-                        umax = plant_b[at(_P_UMAX, n)]
-                        _ctrl_output(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-                        if _FILTER:  # noqa: F821 (compile-time constant)
-                            for i in range(n):
-                                rr[i] = res[i] - cout[i] if plain else res[i]
-                            _res_filter(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-                        for i in range(n):
-                            ui = cout[i] + (fout[i] if _FILTER else res[i])  # noqa: F821
-                            s = 0.0
-                            if ui > umax:
-                                ui = umax
-                                s = 1.0
-                            elif ui < -umax:
-                                ui = -umax
-                                s = 1.0
-                            u[i] = ui
-                            satf[i] = s
-                            hu[i] = dead_zone(ui, plant_b[at(_P_TAIL, n) + _HR], plant_b[at(_P_TAIL, n) + _HL],
-                                              plant_b[at(_P_TAIL, n) + _TR], plant_b[at(_P_TAIL, n) + _TL])
-                        # plant_b: M qdd = H(u) - C qd - G - J^T f_ext - tau_fric   (paper eq. 1)
-                        coriolis_times_into(trig, qd, qd, arm, c, pw)
-                        wrench_torque_into(trig, arm, fixed(plant_b, at(_P_FX, n), at(_P_MZ, n) + 1 - at(_P_FX, n)), jf)
-                        on = force_active(tb, plant_b[at(_P_ONSET, n)]) > 0.0
-                        for i in range(n):
-                            jf[i] = jf[i] if on else 0.0
-                        for i in range(n):
-                            rhs[i] = hu[i] - c[i] - g[i] - jf[i] - fr[i]
-                            dx[at(_S_Q, n) + i] = qd[i]
-                        ldl_solve_factored(Lp, rhs, part(dx, _S_QD, _SIZE_N, n))
-                        _obs_rhs(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wo)  # noqa: F821
-                        _ctrl_update(tb, y, q, qd, xo, xc, ref, bnd, nom, ogb, lgb, fg, u, cout, rr, fout, umax, dxo, dxc, wl)  # noqa: F821
-                    # into K0..K3: apart, since a view at an offset that depends on stage would keep
-                    # LLVM from proving the lanes of the loop above independent
-                    for b in range(LN):
-                        _copy(_lane(work, _L_dx, nx, b), _lane(work, _L_K0 + stage * nx, nx, b))  # noqa: F821
-                if stage == 3:
-                    _check_stability(work, arm0, dt, sps, sums, status, unstable_run)  # noqa: F821
-                    continue
-                if stage > 0:
-                    continue
-                _sample(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, status, last, sums, unstable_run)  # noqa: F821
-            any_fsal = _commit(work, arm0, j, n_steps, status)  # noqa: F821
-        _store_block(work, arm0, N, dt, terminate, X, ksteps, nominal, status, last, unstable_run)  # noqa: F821
-
-
-def _load_block_template(work, arm0, N, n_steps, X, ksteps, plant, nominal, rp, bp, lg, og, fgains, residual, noise,
-                         status, sums):
-    """Load block ``work``'s lanes from the arms ``arm0``, ``arm0 + 1``, ... (a padding lane past the
-    last arm copies the block's first arm and stays inactive); clear their flags, status and sums."""
-    n = _N  # noqa: F821
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821
-    has_noise = noise.shape[1] > 0
-
-    for b in range(LN):
-        a = arm0 + b if arm0 + b < N else arm0
-        _copy(X[a], _lane(work, _L_x, nx, b))  # noqa: F821
-        _copy(plant[a], _lane(work, _L_plant, _NPL, b))  # noqa: F821
-        nom = _lane(work, _L_nom, nominal_length(n), b)  # noqa: F821
-        same_arm = True
-        for i in range(at(_SIZE_ARM, n)):
-            nom[at(_NOM_ARM, n) + i] = nominal[a, i]
-            if nominal[a, i] != plant[a, at(_P_ARM, n) + i]:
-                same_arm = False
-        _copy(rp[a], _lane(work, _L_rp, _NRP, b))  # noqa: F821
-        _copy(bp[a], _lane(work, _L_bp, _NBP, b))  # noqa: F821
-        _copy(lg[a], _lane(work, _L_lg, _NLG, b))  # noqa: F821
-        _copy(og[a], _lane(work, _L_og, _NOG, b))  # noqa: F821
-        _copy(fgains[a], _lane(work, _L_fg, _NFG, b))  # noqa: F821
-        _copy(residual[a], _lane(work, _L_res, n, b))  # noqa: F821
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        for i in range(_N_FLAGS):
-            flags[i] = 0.0
-        real = arm0 + b < N
-        flags[_F_STOPPED] = 0.0 if real else 1.0
-        flags[_F_K0] = ksteps[a]
-        flags[_F_SAME_ARM] = 1.0 if same_arm else 0.0
-        # a noisy arm's measurement changes every step: its check runs once per sample period
-        noisy = False
-        if has_noise:
-            for j in range(n_steps):
-                for i in range(n):
-                    if noise[a, j, i] != 0.0:
-                        noisy = True
-        flags[_F_NOISY] = 1.0 if noisy else 0.0
-        if real:
-            st_b = status[a]
-            sm_b = sums[a]
-            for i in range(st_b.shape[0]):
-                st_b[i] = 0
-            st_b[ST_FIRST_VIOL] = -1
-            for i in range(sm_b.shape[0]):
-                sm_b[i] = 0.0
-
-
-def _begin_step_template(work, arm0, N, j, sps, noise):
-    """Per lane, at step ``j`` of the call: the step's noise sample, whether its instability check
-    runs; returns (the lanes still going, whether any of them checks)."""
-    n = _N  # noqa: F821
-    LN = _LN  # noqa: F821
-    has_noise = noise.shape[1] > 0
-
-    n_active = 0
-    any_check = False
-    for b in range(LN):
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        if flags[_F_STOPPED] == 0.0:
-            flags[_F_HALT] = 0.0
-        k = np.int64(flags[_F_K0]) + j
-        check = flags[_F_NOISY] == 0.0 or (k + 1) % sps == 0
-        flags[_F_CHECK] = 1.0 if check else 0.0
-        nz = _lane(work, _L_nz, n, b)  # noqa: F821
-        a = arm0 + b if arm0 + b < N else arm0
-        for i in range(n):
-            nz[i] = noise[a, j, i] if has_noise else 0.0
-        if flags[_F_STOPPED] == 0.0:
-            n_active += 1
-            if check:
-                any_check = True
-    return n_active, any_check
-
-
-def _check_stability_template(work, arm0, dt, sps, sums, status, unstable_run):
-    """After a step's update, per checking lane: ODE3's embedded error estimate against its
-    tolerance (:func:`_error_ratio`), its running maximum, and the count of consecutive unstable
-    steps (:func:`_instability`), which flags a divergence (code 2)."""
-    n = _N  # noqa: F821
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821
-
-    # the embedded error estimate grows without bound when h is outside ODE3's
-    # stability region, even when the actuator limit keeps the state finite
-    for b in range(LN):
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        if flags[_F_STOPPED] != 0.0 or flags[_F_HALT] != 0.0 or flags[_F_OK] == 0.0 or flags[_F_CHECK] == 0.0:
-            continue
-        a = arm0 + b
-        plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-        en = _error_ratio(_lane(work, _L_ep, nx, b), _lane(work, _L_K3, nx, b), _lane(work, _L_xn, nx, b), dt,  # noqa: F821
-                          plant_l[at(_P_ATOL, n)], plant_l[at(_P_RTOL, n)])
-        if en > sums[a, SUM_ERR_MAX]:
-            sums[a, SUM_ERR_MAX] = en
-        err_run, unstable = _instability(en, flags[_F_NOISY] != 0.0, sps, unstable_run[a],
-                                         plant_l[at(_P_UNSTABLE, n)])
-        unstable_run[a] = err_run
-        if unstable:
-            status[a, ST_DIVERGED] = 2
-
-
-def _sample_template(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, status, last, sums, unstable_run):
-    """Per lane, at step ``j``'s start time (state x, after its first stage evaluation): the
-    violation and saturation bookkeeping (:func:`_step_bookkeeping`), the filter's monitors; at a
-    1 ms sample also the true lumped disturbance, the reward's sums
-    (:func:`blf_gym.kernel.reward.accumulate_sample`) and the record; then the last applied signals."""
-    n = _N  # noqa: F821
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821
-
-    for b in range(LN):
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        if flags[_F_STOPPED] != 0.0:
-            continue
-        a = arm0 + b
-        k = np.int64(flags[_F_K0]) + j
-        x = _lane(work, _L_x, nx, b)  # noqa: F821
-        ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
-        bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
-        u = _lane(work, _L_u, n, b)  # noqa: F821
-        satf = _lane(work, _L_satf, n, b)  # noqa: F821
-        cout = _lane(work, _L_cout, _NOUT, b)  # noqa: F821
-        fout = _lane(work, _L_fout, _NFOUT, b)  # noqa: F821
-        st_b = status[a]
-        last_b = last[a]
-        if _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st_b, n):
-            flags[_F_HALT] = 1.0
-            if unstable_run[a] > 0:
-                # the bound broke while ODE3's error estimate was above tolerance: the
-                # integration's violation, not the arm's (code 3, a divergence)
-                st_b[ST_DIVERGED] = 3
-            continue
-        if _BREACH >= 0 and fout[_BREACH] > 0.0:  # noqa: F821 (the filter's own monitors)
-            st_b[ST_FILTER_BREACHES] += 1
-        if _ASSUME >= 0 and fout[_ASSUME] < 0.5:  # noqa: F821
-            st_b[ST_ASSUMPTION_FAILURES] += 1
-        if k % sps == 0:
-            # a 1 ms sample: the true lumped disturbance, the reward/metric sums, the record
-            y = _lane(work, _L_y, n, b)  # noqa: F821
-            x3 = _lane(work, _L_x3, n, b)  # noqa: F821
-            K0 = _lane(work, _L_K0, nx, b)  # noqa: F821
-            recording = nrec[a] < rec.shape[1]
-            nom_a = nominal[a]
-            if recording:
-                _lumped_true(part(x, _S_Q, _SIZE_N, n), part(x, _S_QD, _SIZE_N, n), part(K0, _S_QD, _SIZE_N, n), u, nom_a,
-                             x3, _lane(work, _L_Mp, n * n, b),  # noqa: F821
-                             _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
-                for i in range(n):
-                    last_b[LAST_X3 * n + i] = x3[i]
-            else:
-                pending = _lane(work, _L_smp, _NSMP, b)  # noqa: F821
-                for i in range(n):
-                    pending[at(_PD_Q, n) + i] = x[at(_S_Q, n) + i]
-                    pending[at(_PD_QD, n) + i] = x[at(_S_QD, n) + i]
-                    pending[at(_PD_QDD, n) + i] = K0[at(_S_QD, n) + i]
-                    pending[at(_PD_U, n) + i] = u[i]
-                flags[_F_PENDING] = 1.0
-            plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-            if accumulate_sample(x, y, ref, bnd, u, cout, plant_l[at(_P_UMAX, n)], sums[a], n):
-                st_b[ST_VIOL_SAMPLES] += 1
-            for i in range(n):
-                last_b[LAST_X3HAT * n + i] = x[_X3H + i] if _X3H >= 0 else np.nan  # noqa: F821
-            if recording:
-                _record(rec[a, nrec[a]], k * dt, x, y, ref, bnd, u, _lane(work, _L_hu, n, b), cout[:n], satf,  # noqa: F821
-                        x3, _X1H, _X2H, _X3H)  # noqa: F821
-                nrec[a] += 1
-        for i in range(n):
-            last_b[LAST_U * n + i] = u[i]
-            last_b[LAST_ULAW * n + i] = cout[i]
-            last_b[LAST_SAT * n + i] = satf[i]
-        for i in range(_NOUT):  # noqa: F821
-            last_b[N_LAST * n + i] = cout[i]
-        for i in range(_NFOUT):  # noqa: F821
-            last_b[N_LAST * n + _NOUT + i] = fout[i]  # noqa: F821
-
-
-def _commit_template(work, arm0, j, n_steps, status):
-    """Per lane, after step ``j``: keep the new state or flag the divergence, stop lanes that halted;
-    returns whether every going lane may reuse its check evaluation as the next step's first one
-    (first-same-as-last)."""
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821
-
-    any_fsal = True
-    for b in range(LN):
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        if flags[_F_STOPPED] != 0.0:
-            continue
-        a = arm0 + b
-        if flags[_F_HALT] == 0.0 and flags[_F_OK] == 0.0:
-            status[a, ST_DIVERGED] = 1
-        if flags[_F_HALT] == 0.0 and flags[_F_OK] != 0.0:
-            _copy(_lane(work, _L_xn, nx, b), _lane(work, _L_x, nx, b))  # noqa: F821
-            status[a, ST_STEPS] += 1
-        if flags[_F_HALT] != 0.0 or status[a, ST_DIVERGED] != 0:
-            flags[_F_STOPPED] = 1.0
-            continue
-        # first-same-as-last: the check's evaluation is the next step's first one when the
-        # inputs are the same (no noise, and the residual is held for the whole call)
-        if not (flags[_F_CHECK] != 0.0 and flags[_F_NOISY] == 0.0 and j + 1 < n_steps):
-            any_fsal = False
-    return any_fsal
-
-
-def _store_block_template(work, arm0, N, dt, terminate, X, ksteps, nominal, status, last, unstable_run):
-    """After the call's last step, per arm of the block: a pending sample's true disturbance, the
-    end state's violation check, and the state and step counter back into ``X`` and ``ksteps``."""
-    n = _N  # noqa: F821
-    nx = _NX  # noqa: F821
-    LN = _LN  # noqa: F821
-
-    for b in range(LN):
-        a = arm0 + b
-        if a >= N:
-            continue
-        flags = _lane(work, _L_flags, _N_FLAGS, b)  # noqa: F821
-        x = _lane(work, _L_x, nx, b)  # noqa: F821
-        x3 = _lane(work, _L_x3, n, b)  # noqa: F821
-        last_b = last[a]
-        st_b = status[a]
-        if flags[_F_PENDING] != 0.0:
-            pending = _lane(work, _L_smp, _NSMP, b)  # noqa: F821
-            _lumped_true(part(pending, _PD_Q, _SIZE_N, n), part(pending, _PD_QD, _SIZE_N, n),
-                         part(pending, _PD_QDD, _SIZE_N, n), part(pending, _PD_U, _SIZE_N, n), nominal[a], x3,  # noqa: F821
-                         _lane(work, _L_Mp, n * n, b), _lane(work, _L_Lp, n * n, b), _lane(work, _L_pw, _NPW, b))  # noqa: F821
-            for i in range(n):
-                last_b[LAST_X3 * n + i] = x3[i]
-        steps = st_b[ST_STEPS]
-        k0 = np.int64(flags[_F_K0])
-        if flags[_F_STOPPED] == 0.0:
-            t_end = (k0 + steps) * dt
-            ref = _lane(work, _L_ref, _NREF, b)  # noqa: F821
-            bnd = _lane(work, _L_bnd, BOUND_LEN, b)  # noqa: F821
-            plant_l = _lane(work, _L_plant, _NPL, b)  # noqa: F821
-            reference_into(t_end, _lane(work, _L_rp, _NRP, b), part(plant_l, _P_ARM, _SIZE_ARM, n), ref)  # noqa: F821
-            bounds_into(t_end, _lane(work, _L_bp, _NBP, b), bnd)  # noqa: F821
-            if _violates(x, ref, bnd, n):
-                st_b[ST_VIOL_STEPS] += 1
-                if st_b[ST_FIRST_VIOL] < 0:
-                    st_b[ST_FIRST_VIOL] = k0 + steps
-                if terminate and unstable_run[a] > 0:
-                    st_b[ST_DIVERGED] = 3  # as above: this violation ends the episode, on an unstable integration
-        _copy(x, X[a])
-        ksteps[a] = k0 + steps
-
-
-_PARTS = {"_load_block": _load_block_template, "_begin_step": _begin_step_template,
-          "_check_stability": _check_stability_template, "_sample": _sample_template, "_commit": _commit_template,
-          "_store_block": _store_block_template}
-"""The kernel's parts, each one job, cloned with the same bindings as :func:`_lanes_template` and
-inlined into it."""
-
 
 # ---------------------------------------------------------------------------------------------
-# specialisation: clone the templates with the law and observer bound, compile with a disk cache
+# specialisation: a generated module per connection and width, compiled with a disk cache
 
 
 def kernel_digest(conn: Connection) -> str:
@@ -843,8 +93,8 @@ def kernel_digest(conn: Connection) -> str:
 
 
 def _cache_dir(dispatcher) -> Path:
-    """Where numba keeps this dispatcher's cache: next to the sources if that folder is writable,
-    otherwise its fallback (``NUMBA_CACHE_DIR`` or the user's cache folder)."""
+    """Where numba keeps this dispatcher's cache: beside its source file if that folder is writable
+    (a build's module lies in blf-gym's cache folder), otherwise its fallback (``NUMBA_CACHE_DIR``)."""
     return Path(dispatcher._cache._cache_path)
 
 
@@ -859,28 +109,31 @@ def _is_cached(dispatcher) -> bool:
         return False
 
 
-def remove_stale_cache(cache: Path, prefix: str, digest: str) -> list[Path]:
-    """Delete numba's cache files of older builds of one kernel, ``simulate.{prefix}{digest}-...``
-    with another 10-hex-digit digest (they are never used again); return what was deleted.
+def remove_stale_cache(folder: Path, prefix: str, digest: str) -> list[Path]:
+    """Delete the files of older builds of one kernel in ``folder`` and its ``__pycache__``: the
+    generated module ``{prefix}{digest}.py``, its compile lock and numba's cache files
+    (``{prefix}{digest}.advance-....nbi``), for every 10-hex-digit digest but ``digest`` (they are
+    never used again); return what was deleted.
 
     Only that exact name with another digest is stale. Other kernels whose names merely start with
-    the prefix stay: the unfiltered ``advance__n3__proposed__leso__`` is a prefix of the filtered
-    ``advance__n3__proposed__leso__barrier__...``, and a glob on the prefix deleted those, so every
-    run that built one kernel recompiled the other."""
+    the prefix stay: the unfiltered ``advance1__n3__proposed__leso__`` is a prefix of the filtered
+    ``advance1__n3__proposed__leso__barrier__...``, and a glob on the prefix would delete those, so every
+    run that built one kernel would recompile the other."""
     import re
 
-    if not cache.is_dir():
-        return []
-    pattern = re.compile(rf"simulate\.{re.escape(prefix)}([0-9a-f]{{10}})-")
+    pattern = re.compile(rf"{re.escape(prefix)}([0-9a-f]{{10}})[.-]")
     gone = []
-    for f in cache.glob(f"simulate.{prefix}*"):
-        m = pattern.match(f.name)
-        if m and m.group(1) != digest:
-            try:
-                f.unlink()
-                gone.append(f)
-            except OSError:
-                pass
+    for where in (folder, folder / "__pycache__"):
+        if not where.is_dir():
+            continue
+        for f in where.glob(f"{prefix}*"):
+            m = pattern.match(f.name)
+            if m and m.group(1) != digest:
+                try:
+                    f.unlink()
+                    gone.append(f)
+                except OSError:
+                    pass
     return gone
 
 
@@ -915,7 +168,7 @@ def _compile_lock(kernel, label: str):
     f = None
     if fcntl is not None:
         # named like the kernel's cache files, so that remove_stale_cache drops it with them
-        path = _cache_dir(kernel) / f"simulate.{kernel.py_func.__qualname__}-compile.lock"
+        path = Path(inspect.getfile(kernel.py_func)).with_suffix(".compile.lock")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             f = open(path, "a")
@@ -937,24 +190,92 @@ def _compile_lock(kernel, label: str):
             fcntl.flock(f, fcntl.LOCK_UN)
 
 
-def _clone(template, name: str, bindings: dict, **jit_options):
-    g = dict(template.__globals__)
-    g.update(bindings)
-    fn = types.FunctionType(template.__code__, g, name, template.__defaults__, template.__closure__)
-    fn.__qualname__ = name
-    fn.__module__ = template.__module__
-    fn.__doc__ = template.__doc__
-    return njit(cache=True, error_model="numpy", **jit_options)(fn)
-
-
 _KERNELS: dict[tuple, object] = {}
 _NOTICED: set = set()
 
 
+def _build_values(conn: Connection, lanes: int) -> dict[str, int | bool]:
+    """The constants of one build (the sizes, offsets and flags of :data:`templates.BUILD_NAMES`)."""
+    n = conn.n
+    head = STATE.length(n)
+    off = {k: head + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
+           for k in ("x1_hat", "x2_hat", "x3_hat")}
+    fo = conn.fout_offsets
+    layout = _layout(conn)
+    values: dict[str, int | bool] = {
+        "_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": head + conn.n_obs + conn.n_ctrl, "_NOUT": conn.n_out,
+        "_NFOUT": conn.n_fout, "_LN": lanes, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"],
+        "_BREACH": fo["breach"][0] if "breach" in fo else -1,
+        "_ASSUME": fo["assumptions"][0] if "assumptions" in fo else -1, "_FILTER": conn.filter is not None}
+    for name, part in (("_NPL", "plant"), ("_NRP", "rp"), ("_NBP", "bp"), ("_NLG", "lg"), ("_NOG", "og"), ("_NFG", "fg"),
+                       ("_NPW", "pw"), ("_NANG", "ang"), ("_NEX", "ex"), ("_NREF", "ref"), ("_NSMP", "smp")):
+        values[name] = layout[part][1]
+    values.update({f"_L_{k}": o for k, (o, _) in layout.items() if k != "_total"})
+    return values
+
+
+def _template_imports() -> list[str]:
+    """The helpers the templates read from their module (every global name they use that a build
+    does not define), as import lines of a build's module."""
+    own = {fn.__name__ for fn in TEMPLATES} | set(templates.BUILD_NAMES)
+    names, modules = set(), {}
+    for fn in TEMPLATES:
+        for name in fn.__code__.co_names:
+            if name in own or name not in vars(templates):
+                continue
+            value = vars(templates)[name]
+            if isinstance(value, types.ModuleType):
+                modules[name] = value.__name__
+            else:
+                names.add(name)
+    lines = [f"import {mod} as {name}" if mod.rsplit(".", 1)[-1] != name or "." in mod else f"import {mod}"
+             for name, mod in sorted(modules.items())]
+    rows, row = [], "from blf_gym.kernel.templates import ("
+    for name in sorted(names):
+        if len(row) + len(name) + 2 > 110:
+            rows.append(row.rstrip())
+            row = "    "
+        row += f"{name}, "
+    return lines + rows + [row.rstrip(", ") + ")"]
+
+
+def build_source(conn: Connection, lanes: int) -> str:
+    """The source of one build's module (:mod:`blf_gym.jit.codegen`): the templates' helpers
+    imported, the build's constants, the lane view, the plug-ins' glue and the reward's per-sample sum
+    bound, then a copy of each template, the parts inlined into the time loop :func:`advance`."""
+    label = kernel_label(conn.controller.name, conn.observer.name, conn.filter.name if conn.filter else None)
+    lines = [f'"""The closed loop for {label}, n = {conn.n}, {lanes} arm(s) per block: generated by',
+             "blf_gym.kernel.simulate.build_source from blf_gym.kernel.templates (do not edit; the digest in the",
+             'name is that of its sources)."""', "", "from numba import njit", "",
+             "from blf_gym.jit.codegen import bound", reward.ACCUMULATE_IMPORT,
+             "from blf_gym.kernel.templates import lane_view", *_template_imports(), "",
+             "# the build's sizes, offsets and flags (blf_gym.kernel.templates.BUILD_NAMES)"]
+    lines += [f"{name} = {value!r}" for name, value in _build_values(conn, lanes).items()]
+    lines += ["", f"_lane = lane_view[{lanes}]", "",
+              "# the plug-ins' glue (blf_gym.plugins.blocks.connect), bound by the loader"]
+    lines += [f'{name} = bound(__name__, "{name}")' for name in ("_ctrl_output", "_obs_rhs", "_ctrl_update",
+                                                                 "_res_filter")]
+    lines += ["", "", reward.accumulate_source().rstrip()]
+    parts = [fn for fn in TEMPLATES if fn.__name__ != "advance"]
+    for fn in parts:
+        lines += ["", "", '@njit(cache=True, error_model="numpy", inline="always")', inspect.getsource(fn).rstrip()]
+    lines += ["", "", '@njit(cache=True, error_model="numpy", nogil=True, _nrt=False)',
+              inspect.getsource(templates.advance).rstrip(), ""]
+    return "\n".join(lines)
+
+
+def kernel_folder() -> Path:
+    """Where this copy of blf_gym keeps its kernels' builds: ``kernels/<tree>`` in blf-gym's cache
+    folder, one folder per copy of the package on disk (a digest of its path), so that two checkouts
+    sharing the cache folder never delete each other's builds as stale."""
+    tree = str(Path(templates.__file__).resolve().parents[1])
+    return cache_dir() / "kernels" / hashlib.sha1(tree.encode()).hexdigest()[:10]
+
+
 def _specialise(conn: Connection, lanes: int = LANES):
     """The compiled kernel for one connection (controller, observer, n) and block width ``lanes``
-    (1 or :data:`LANES`): the templates cloned with the generated glue, the sizes and the block
-    layout bound as globals, compiled with a disk cache."""
+    (1 or :data:`LANES`): :func:`build_source`'s module, imported from :func:`kernel_folder`, its
+    function ``advance`` compiled with a disk cache."""
     key = (conn, lanes)
     if key not in _KERNELS:
         n = conn.n
@@ -962,39 +283,23 @@ def _specialise(conn: Connection, lanes: int = LANES):
         pair = f"{conn.controller.name}__{conn.observer.name}"
         if conn.filter is not None:
             pair += f"__{conn.filter.name}"
-        tag = f"{pair}__{digest}"
-        off = {k: STATE.length(n) + conn.obs_offsets[k][0] if k in conn.obs_offsets and conn.obs_offsets[k][1] == n else -1
-               for k in ("x1_hat", "x2_hat", "x3_hat")}
-        fo = conn.fout_offsets
-        sizes = {"_N": n, "_NO": conn.n_obs, "_NC": conn.n_ctrl, "_NX": STATE.length(n) + conn.n_obs + conn.n_ctrl,
-                 "_NOUT": conn.n_out, "_X1H": off["x1_hat"], "_X2H": off["x2_hat"], "_X3H": off["x3_hat"],
-                 "_FILTER": conn.filter is not None, "_NFOUT": conn.n_fout,
-                 "_BREACH": fo["breach"][0] if "breach" in fo else -1,
-                 "_ASSUME": fo["assumptions"][0] if "assumptions" in fo else -1}
-        layout = _layout(conn)
-        sizes.update({f"_L_{k}": o for k, (o, _) in layout.items() if k != "_total"})
-        sizes.update(_NPL=layout["plant"][1], _NRP=layout["rp"][1], _NBP=layout["bp"][1], _NLG=layout["lg"][1],
-                     _NOG=layout["og"][1], _NFG=layout["fg"][1], _NPW=layout["pw"][1], _LN=lanes,
-                     _NREF=layout["ref"][1], _NSMP=layout["smp"][1],
-                     _NANG=layout["ang"][1], _NEX=layout["ex"][1],
-                     _lane=_lane1 if lanes == 1 else _laneN)
-        parts = {name: _clone(tpl, f"{name[1:]}{lanes}__n{n}__{tag}", sizes, inline="always")
-                 for name, tpl in _PARTS.items()}
-        kernel = _clone(_lanes_template, f"advance{lanes}__n{n}__{tag}",
-                        {"_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
-                         "_res_filter": conn.res_filter, **sizes, **parts}, nogil=True, _nrt=False)
-        cache = _cache_dir(kernel)
-        remove_stale_cache(cache, f"stage__n{n}__{pair}__", digest)  # the stage function of older versions
-        remove_stale_cache(cache, f"advance{lanes}__n{n}__{pair}__", digest)
-        _KERNELS[key] = kernel
+        prefix = f"advance{lanes}__n{n}__{pair}__"
+        folder = kernel_folder()
+        remove_stale_cache(folder, prefix, digest)
+        module = load_module(f"{prefix}{digest}", build_source(conn, lanes), folder, {
+            "_ctrl_output": conn.ctrl_output, "_obs_rhs": conn.obs_rhs, "_ctrl_update": conn.ctrl_update,
+            "_res_filter": conn.res_filter})
+        _KERNELS[key] = module.advance
     return _KERNELS[key]
 
 
-def kernels_cached(controller: str = "proposed", observer: str = "leso", n: int = 3) -> bool:
-    """Whether the closed loop of ``controller`` and ``observer`` for ``n`` joints is compiled for
-    the current sources (in numba's disk cache, one arm or a block), without compiling it: how a
-    command or the test suite tells a user that a first run compiles before it starts."""
-    conn = connect(make_controller(controller), make_observer(observer), n)
+def kernels_cached(controller: str = "proposed", observer: str = "leso") -> bool:
+    """Whether the closed loop of ``controller`` and ``observer``, as the registry makes them (for
+    their default nominal arm's joints), is compiled for the current sources (in numba's disk cache,
+    one arm or a block), without compiling it: how a command or the test suite tells a user that a
+    first run compiles before it starts."""
+    law = make_controller(controller)
+    conn = connect(law, make_observer(observer), law.nominal.n_links)
     return _is_cached(_specialise(conn, 1)) or _is_cached(_specialise(conn, LANES))
 
 
