@@ -8,7 +8,7 @@ written as the triple ``(a, b, c)``). Everything else derives its offsets from t
 parameter classes pack in this order (:mod:`blf_gym.model.params`), the compiled code reads
 ``at(START, n)`` with a start triple taken from here (with n a compile-time constant in the kernel,
 LLVM folds it to a number), the env and the results read columns by name. No other module writes a
-literal offset into one of these arrays; ``tests/test_layout.py`` looks for them.
+literal offset into one of these arrays; ``tests/test_packed_layouts.py`` looks for them.
 
 This module sits at the bottom of blf_gym (beside the compiled caches' keys and maths) because the
 model, the lowest layer that packs, already needs it.

@@ -669,8 +669,8 @@ def _check_stability(work, arm0, dt, sps, sums, status, unstable_run):
 def _sample(work, arm0, j, dt, sps, terminate, nominal, rec, nrec, status, last, sums, unstable_run):
     """Per lane, at step ``j``'s start time (state x, after its first stage evaluation): the
     violation and saturation bookkeeping (:func:`_step_bookkeeping`), the filter's monitors; at a
-    1 ms sample also the true lumped disturbance, the reward's sums
-    (``accumulate_sample``, :func:`blf_gym.kernel.reward.accumulate_source`) and the record; then the last applied signals."""
+    1 ms sample also the true lumped disturbance, the reward's sums (``accumulate_sample``,
+    :func:`blf_gym.kernel.reward.accumulate_source`) and the record; then the last applied signals."""
     n = _N
     nx = _NX
     LN = _LN
