@@ -205,11 +205,11 @@ cos and sin of the absolute link angles (:data:`TRIG`), the LDL^T factor of M(y)
 PLUGIN_WORK = Pack("plug-in work", [("scratch", (2, 12, 0))])
 """The ``work`` signal a plug-in function is handed: 2 n^2 + 12 n entries of scratch, its own."""
 
-WORK_PER_LINK = 4
-"""Scratch entries per link that the dynamics' ``*_into`` functions need in ``work``."""
 DYN_WORK = Pack("dynamics work", [("mu", N), ("omega", N), ("psi", N), ("spare", N)])
 """The ``work`` of :mod:`blf_gym.model.dynamics`: the mass carried beyond each joint, the cumulative
 sums of the Coriolis operator's two vectors; :data:`WORK_PER_LINK` entries per link."""
+WORK_PER_LINK = DYN_WORK.total[1]
+"""Scratch entries per link that the dynamics' ``*_into`` functions need in ``work`` (from :data:`DYN_WORK`)."""
 
 KERNEL_WORK = Pack("kernel work", [("dynamics", _times(WORK_PER_LINK, N)), ("trig", _times(2, N)), ("coriolis", N),
                                    ("gravity", N), ("wrench", N), ("rhs", N),
