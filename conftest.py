@@ -15,8 +15,9 @@ os.environ.setdefault("BLF_GYM_JOBS", "1")
 # the NMPC's solver) goes to one temporary folder per test run, made here by the first process (the
 # xdist controller, before it starts the workers) and inherited by the workers, their subprocesses
 # and the notebooks' kernels through the environment; removed at the end of the run. The closed-loop
-# kernels' own numba cache stays beside the sources (blf_gym/__pycache__): built once, it is what
-# keeps a second run of the suite from compiling every kernel again (several minutes on 2 cores).
+# kernels' builds live there too (blf_gym.kernel.simulate.kernel_folder), so every run of the suite
+# compiles the kernels it needs once, shared by its workers and their subprocesses, as CI's fresh
+# clone does.
 if "BLF_GYM_TEST_CACHE" not in os.environ:
     import tempfile
 

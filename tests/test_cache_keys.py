@@ -151,6 +151,39 @@ def test_numba_per_function_caches_are_stamped_with_their_closure(tree):
         assert sources.digest("blf_gym.model.reference", path=(str(tree),)) != before
 
 
+_UNCACHABLE = """
+import ctypes, warnings
+import blf_gym.jit.vmath  # noqa: F401 (so that the closure locator serves this module)
+from numba import njit
+from numba.core.errors import NumbaWarning
+
+labs = ctypes.CDLL(None).labs  # a ctypes function: its address is a dynamic global, which numba cannot cache
+labs.restype, labs.argtypes = ctypes.c_long, (ctypes.c_long,)
+
+@njit(cache=True)
+def f(x):
+    return labs(x)
+
+with warnings.catch_warnings(record=True) as seen:
+    warnings.simplefilter("always")
+    assert f(-3) == 3
+print([(str(w.message), w.filename) for w in seen if issubclass(w.category, NumbaWarning)])
+"""
+
+
+def test_a_function_numba_cannot_cache_gets_numbas_warning_not_a_crash(tmp_path):
+    """numba reads the locator's ``_py_file`` and ``_lineno`` when it warns that a function cannot
+    be cached (here: it calls a ctypes function); the closure locator passes them on from the locator
+    numba would have chosen, so the function runs and the warning names its file."""
+    (tmp_path / "uncachable_mod.py").write_text(_UNCACHABLE)
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(tmp_path), str(Path(blf_gym.__file__).resolve().parents[1])]),
+               BLF_GYM_CACHE_DIR=str(tmp_path / "cache"), NUMBA_CACHE_DIR=str(tmp_path / "numba"))
+    out = subprocess.run([sys.executable, "-c", "import uncachable_mod"], env=env, capture_output=True, text=True,
+                         cwd=tmp_path, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "Cannot cache compiled function" in out.stdout and "uncachable_mod.py" in out.stdout, out.stdout
+
+
 def test_imports_inside_functions_and_of_the_standard_library_are_not_followed(tmp_path):
     pkg = tmp_path / "pkg_for_closure"
     pkg.mkdir()

@@ -259,6 +259,11 @@ class ImportClosureLocator(caching._CacheLocator):
         self._inner = inner
         self._stamp = stamp
 
+    def __getattr__(self, name: str) -> Any:
+        # what numba reads from a locator besides its methods (``_py_file``, ``_lineno``, in its
+        # warning for a function it cannot cache) is the inner locator's
+        return getattr(self._inner, name)
+
     def ensure_cache_path(self) -> None:
         self._inner.ensure_cache_path()
 
