@@ -1149,10 +1149,10 @@ COMPARE_ROWS = (
 """``benchmarks/compare.py``'s figures in table order: key, row label, unit, decimals."""
 
 
-def compare_table() -> str:
+def compare_table(name: str = "compare") -> str:
     """Two trees measured in interleaved rounds, medians and the range over rounds, from
-    ``docs/speed/compare.json`` (``python benchmarks/compare.py BASE_TREE . --json docs/speed/compare.json``)."""
-    d = _load("speed", "compare.json")
+    ``docs/speed/<name>.json`` (``python benchmarks/compare.py BASE_TREE . --json docs/speed/<name>.json``)."""
+    d = _load("speed", f"{name}.json")
     commits = {k: d["trees"][k]["commit"] or d["trees"][k]["path"] for k in ("base", "new")}
     out = [f"| what | base ({commits['base']}) | new ({commits['new']}) | new / base | over rounds, base; new |",
            "|---|---|---|---|---|"]
@@ -1182,6 +1182,7 @@ def threads_table() -> str:
 MEASURED_BLOCKS = (
     ("docs/speed.md", "speed", ("core", "env", "resets"), speed_table),
     ("docs/speed.md", "speed-compare", ("compare",), compare_table),
+    ("docs/speed.md", "speed-compare-layout", ("compare_layout",), lambda: compare_table("compare_layout")),
     ("docs/conventions.md", "threads", ("threads",), threads_table),
 )
 """The benchmark tables: page, marker name, the files under ``docs/speed/`` it needs, the function."""

@@ -86,6 +86,8 @@ class Pack:
             self.starts[part] = o
             o = _plus(o, s)
         self.total: Size = o
+        self._offsets: dict[int, dict[str, tuple[int, int]]] = {}  # offsets(n), kept: the env reads them every step
+        self._slices: dict[tuple[str, int], slice] = {}
 
     def __len__(self) -> int:
         return len(self.parts)
@@ -121,16 +123,25 @@ class Pack:
         return a * n * n + b * n + c
 
     def offsets(self, n: int) -> dict[str, tuple[int, int]]:
-        """part -> (offset, length) for n joints."""
-        out = {}
-        for p in self.parts:
-            (a, b, c), (sa, sb, sc) = self.starts[p], self.sizes[p]
-            out[p] = (a * n * n + b * n + c, sa * n * n + sb * n + sc)
+        """part -> (offset, length) for n joints (computed once per n; the caller must not change
+        the dict)."""
+        out = self._offsets.get(n)
+        if out is None:
+            out = {}
+            for p in self.parts:
+                (a, b, c), (sa, sb, sc) = self.starts[p], self.sizes[p]
+                out[p] = (a * n * n + b * n + c, sa * n * n + sb * n + sc)
+            self._offsets[n] = out
         return out
 
     def slice(self, part: str, n: int) -> slice:
-        off, m = self.offsets(n)[part]
-        return slice(off, off + m)
+        """The part's slice for n joints (kept per part and n)."""
+        key = (part, n)
+        out = self._slices.get(key)
+        if out is None:
+            off, m = self.offsets(n)[part]
+            out = self._slices[key] = slice(off, off + m)
+        return out
 
     def __repr__(self) -> str:
         return f"Pack({self.name!r}, {list(self.parts)})"
