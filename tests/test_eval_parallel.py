@@ -80,6 +80,15 @@ def _children(pid: int) -> list[int]:
 @pytest.mark.slow
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
 def test_ctrl_c_ends_the_workers_and_keeps_the_finished_records(tmp_path):
+    from blf_gym.kernel.simulate import ClosedLoop
+    from blf_gym.model.params import preset
+
+    # The builds both workers load, compiled here first (into the run's cache folder, which the
+    # command inherits): the law's worker steps blocks of four arms, the agent's env one arm. Left
+    # cold, the law's worker compiles for tens of seconds under load, long enough for the agent's
+    # whole piece to finish first, and the run then ended before the signal could interrupt it.
+    for lanes in (1, 4):
+        ClosedLoop([preset("paper-0.1hz")], "proposed", threads=1, lanes=lanes).advance(10)
     out = tmp_path / "out"
     # the presets' baseline rows finish in a second or two; the stress agents take far longer
     cmd = [sys.executable, "-m", "agents.evaluate", "--controllers", "proposed", "--agents",
