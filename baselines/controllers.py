@@ -3,8 +3,9 @@
 ``bc``, ``lesobc``, ``proposed`` and ``leso`` are the factories registered under the entry-point
 groups ``blf_gym.controllers`` and ``blf_gym.observers``; keyword arguments override gains, e.g.
 ``proposed(K2=(45, 45, 15), barrier_clip=0.9)``. The default gain vectors are the paper's, for its
-3-link arm; a law for an arm of n links is built with that arm as ``nominal`` and its gains, one
-number for every joint or n of them: ``proposed(nominal=arm, K1=20.0, K2=(45.0, 15.0))``.
+3-link arm; a law for an arm of n links is built with that arm as ``nominal``, its defaults carried
+to that arm by docs/family.md's rule (:func:`controller_gains`), or with its gains given, one number
+for every joint or n of them: ``proposed(nominal=arm, K1=20.0, K2=(45.0, 15.0))``.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 
 from blf_gym.plugins.blocks import Controller, Observer
 from blf_gym.model.params import ArmParams
@@ -21,7 +23,7 @@ from .cbf import cbf_filter
 from .filters import barrier_filter
 from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
-from .params import params_from, positive_vector
+from .params import PAPER_LINKS, by_position, velocity_gain, params_from, positive_vector
 
 __all__ = ["ControllerGains", "ObserverGains", "PROPOSED_TUNED", "controller_gains", "bc", "lesobc", "proposed",
            "proposed_tuned", "leso"]
@@ -30,8 +32,9 @@ __all__ = ["ControllerGains", "ObserverGains", "PROPOSED_TUNED", "controller_gai
 @dataclass(frozen=True)
 class ControllerGains:
     """Backstepping gains (paper Table 2) and the barrier guard. K1 and K2 are one number for every
-    joint or one per joint; their defaults are the paper's, for its 3-link arm, so an arm of other
-    than 3 links (``nominal``) must be given both (ValueError naming the gain otherwise)."""
+    joint or one per joint; their defaults are the paper's, for its 3-link arm: built directly on an
+    arm of other than 3 links (``nominal``) it must be given both (ValueError naming the gain
+    otherwise); the laws' factories carry the defaults to that arm (:func:`controller_gains`)."""
 
     # paper: Table 2's diagonals, for the paper's 3-link arm
     K1: tuple[float, ...] = field(default=(20.0, 20.0, 15.0), metadata={"unit": "1/s"})
@@ -65,9 +68,19 @@ class ObserverGains:
             raise ValueError(f"ObserverGains.k0 must be a finite number > 0, got {self.k0!r}")
 
 
-def controller_gains(kwargs: dict[str, Any]) -> ControllerGains:
-    """:class:`ControllerGains` from keyword overrides, refusing unknown names by name."""
-    return params_from(ControllerGains, kwargs, "controller gain")
+def controller_gains(kwargs: dict[str, Any], defaults: dict[str, Any] | None = None) -> ControllerGains:
+    """:class:`ControllerGains` from keyword overrides (``kwargs``) over a law's own defaults
+    (``defaults``, gains for the paper's arm; :class:`ControllerGains`' where absent), refusing
+    unknown names by name. On a ``nominal`` arm of other than the paper's 3 links, the defaults'
+    K1 and K2 are carried to that arm by the rule of docs/family.md ("Gains": K1 read at the
+    joints' positions along the chain, K2's shape too, scaled to the paper's fastest velocity pole); gains given in ``kwargs`` are taken
+    as they are (a vector for 3 joints on another arm is refused by name)."""
+    base = {"K1": ControllerGains.K1, "K2": ControllerGains.K2, **(defaults or {})}
+    nominal = kwargs.get("nominal")
+    if isinstance(nominal, ArmParams) and nominal.n_links != PAPER_LINKS:
+        base = {**base, "K1": by_position(np.broadcast_to(base["K1"], (PAPER_LINKS,)), nominal.n_links),
+                "K2": velocity_gain(np.broadcast_to(base["K2"], (PAPER_LINKS,)), nominal)}
+    return params_from(ControllerGains, {**base, **kwargs}, "controller gain")
 
 
 _LESO_STATES = {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n"}
@@ -97,13 +110,14 @@ PROPOSED_TUNED = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}  # 
 """The proposed law's gains chosen by the grid search that chose PPC's (docs/gains/proposed: K1 = 1280
 and K2 = 11.25 in the grid's scaling of the paper's vectors, the best of 40 points on the same 10
 selection episodes within the same torque budget, 1.25 times the paper-gain law's RMS torque). Chosen
-on the paper's 3-link arm: an arm of another number of links is given K1 and K2."""
+on the paper's 3-link arm; on an arm of another number of links they are carried to it by
+docs/family.md's rule unless K1 and K2 are given."""
 
 
 def proposed_tuned(**kwargs: Any) -> Controller:
     """The paper's law with tuned gains (:data:`PROPOSED_TUNED`); everything else, the barrier and
     its filters included, is the proposed law's."""
-    return Controller("proposed_tuned", proposed_output, controller_gains({**PROPOSED_TUNED, **kwargs}),
+    return Controller("proposed_tuned", proposed_output, controller_gains(kwargs, PROPOSED_TUNED),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"},
                       filters={"barrier": barrier_filter, "cbf": cbf_filter})
 

@@ -43,7 +43,8 @@ PPC_GAINS: dict[str, Any] = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25,
 (the paper's K1, K2 and the guard): the paper's K1 times 64 and K2 times 1/4, chosen by
 ``python -m baselines.gains`` on the presets and training-suite seeds 0-7 only, under a torque
 budget of 1.25 times the law's RMS torque (docs/gains/ppc/gains.md, docs/model.md section 12). Chosen
-on the paper's 3-link arm: an arm of another number of links (``nominal``) is given K1 and K2."""
+on the paper's 3-link arm; on an arm of another number of links (``nominal``) they are carried to it
+by docs/family.md's rule unless K1 and K2 are given."""
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -93,5 +94,5 @@ def ppc(**kwargs: Any) -> Controller:
     """Prescribed-performance control with the LESO's velocity and disturbance estimates; keyword
     arguments override :class:`baselines.controllers.ControllerGains` (K1 is the transformed
     error's rate, 1/s)."""
-    return Controller("ppc", ppc_output, controller_gains({**PPC_GAINS, **kwargs}),
+    return Controller("ppc", ppc_output, controller_gains(kwargs, PPC_GAINS),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "epsilon": "n"})

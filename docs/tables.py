@@ -979,6 +979,53 @@ LAGRANGIAN_HYPERPARAMETERS = {
 """What each of PPO-Lagrangian's own hyperparameters means and accepts."""
 
 
+def family_members_table() -> str:
+    """The task family's arms (blf_gym.model.family.family_table): links, masses, reach, the largest
+    gravity and force torques at the base, the lightest mode, and the proposed law's carried gains."""
+    import numpy as np
+
+    from baselines.params import fastest_pole
+    from blf_gym.model.dynamics import mass_matrix
+    from blf_gym.model.family import family_arm, family_presets, family_table
+    from blf_gym.plugins.registry import make_controller
+
+    out = ["| n | links (m) | masses (kg) | reach (m) | gravity at the base (N m) | 40 N force at the base (N m) | "
+           "lightest mode (kg m^2) | presets |", "|---|---|---|---|---|---|---|---|"]
+    for row in family_table():
+        n = row["n"]
+        arm = family_arm(n)
+        qs = np.random.default_rng(0).uniform(-np.pi, np.pi, (512, n))
+        lightest = min(np.linalg.eigvalsh(mass_matrix(q, arm)).min() for q in [np.zeros(n), *qs])
+        ls = ", ".join(f"{x:g}" for x in row["lengths"]) if len(set(row["lengths"])) > 1 else f"{n} x {row['lengths'][0]:g}"
+        ms = ", ".join(f"{x:g}" for x in row["masses"]) if len(set(row["masses"])) > 1 else f"{n} x {row['masses'][0]:g}"
+        out.append(f"| {n} | {ls} | {ms} | {row['reach']:.2f} | {row['gravity_torque']:.2f} | "
+                   f"{row['force_torque']:.1f} | {lightest:.2e} | {', '.join(f'`{p}`' for p in family_presets(n))} |")
+    out += ["", "| n | K1 (1/s) | K2 (N m s/rad) | fastest velocity pole (1/s) |", "|---|---|---|---|"]
+    for n in (2, 3, 4, 5, 6, 7):
+        arm = family_arm(n)
+        g = make_controller("proposed", **({} if n == 3 else {"nominal": arm})).params
+        out.append(f"| {n} | {', '.join(f'{x:.4g}' for x in g.K1)} | {', '.join(f'{x:.4g}' for x in g.K2)} | "
+                   f"{fastest_pole(g.K2, arm):.4g} |")
+    return "\n".join(out) + "\n"
+
+
+def family_law_table() -> str:
+    """The proposed law on each member (docs/family/law.json, python docs/family/run.py): per member
+    and group (its presets, its training-suite draws), the worst joint's RMSE, the largest torque,
+    and how many episodes broke a bound or diverged."""
+    data = _load("family", "law.json")
+    out = ["| n | episodes | RMSE, worst joint (deg) | largest torque (N m) | broke a bound | diverged |",
+           "|---|---|---|---|---|---|"]
+    for n in sorted({r["n"] for r in data["records"]}):
+        for group, pick in (("presets", lambda r: not r["scenario"].startswith("randomized")),
+                            (f"training suite, seeds 0-{data['draws'] - 1}", lambda r: r["scenario"].startswith("randomized"))):
+            rs = [r for r in data["records"] if r["n"] == n and pick(r)]
+            out.append(f"| {n} | {len(rs)} ({group}) | {max(max(r['rmse_deg']) for r in rs):.3f} | "
+                       f"{max(max(r['max_torque']) for r in rs):.1f} | {sum(r['violating_samples'] > 0 for r in rs)} | "
+                       f"{sum(r['diverged'] for r in rs)} |")
+    return "\n".join(out) + "\n"
+
+
 def lagrangian_hyperparameters_table() -> str:
     """PPO-Lagrangian's own hyperparameters with their defaults, in the order of
     ``PPOLagrangian.__init__`` in ``agents/lagrangian.py`` (read from its source, so that torch is
@@ -1294,6 +1341,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
     "docs/levels.md": {"levels": levels_table, "floor": floor_table},
+    "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},

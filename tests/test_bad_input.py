@@ -324,6 +324,7 @@ BAD_KWARGS = {
         st.just("residual_filter")),
     # above the cores this process may use is refused too: extra threads only wait
     "threads": st.tuples(bad_int(1, none_ok=True) | st.integers(usable_cores() + 1, 10**6), st.just("threads")),
+    "n_links": st.tuples(bad_int(2, none_ok=True) | st.integers(8, 10**6), st.just("n_links")),
     "render_mode": st.tuples(STRINGS.filter(lambda s: s not in ("rgb_array", "human")) | st.integers()
                              | BOOLS, st.just("render_mode")),
 }

@@ -30,8 +30,12 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # the registered plug-ins of this repository (an installed example's are not ours to check)
 OURS = sorted(e.name for e in entry_points(group="blf_gym.controllers") if e.value.startswith("baselines."))
-PAPER_GAINED = {"bc", "lesobc", "proposed", "proposed_tuned", "ppc", "pd_gravity", "pd_gravity_leso"}
-"""The laws whose default gains are vectors for the paper's 3-link arm: refused at other n, by name."""
+CARRIED = {"bc", "lesobc", "proposed", "proposed_tuned", "ppc"}
+"""The laws whose default gains are vectors for the paper's 3-link arm, carried to an arm of n links
+by docs/family.md's rule (tests/test_family.py checks the rule's numbers)."""
+PAPER_GAINED = {"pd_gravity", "pd_gravity_leso"}
+"""The laws whose default gains are vectors for the paper's 3-link arm and are not carried: refused
+at other n, by name."""
 ANY_N = {"funnel", "computed_torque", "computed_torque_leso"}
 """The laws whose defaults are one number for every joint (or scalars): they build at any n."""
 
@@ -42,15 +46,20 @@ def _per_joint(params):
 
 
 def test_the_registered_laws_are_the_ones_this_file_sorts():
-    assert set(OURS) == PAPER_GAINED | ANY_N, set(OURS) ^ (PAPER_GAINED | ANY_N)
+    assert set(OURS) == CARRIED | PAPER_GAINED | ANY_N, set(OURS) ^ (CARRIED | PAPER_GAINED | ANY_N)
 
 
 @pytest.mark.parametrize("n", [2, 4])
 def test_every_registered_law_builds_at_n_or_names_the_paper_gain_it_needs(n):
     arm = joint_scenario(n).arm
     for name in OURS:
-        if name in ANY_N:
+        if name in ANY_N | CARRIED:
             c = make_controller(name, nominal=arm)
+            # a gain vector for the paper's 3 joints, given on this arm, is still refused by name
+            paper = make_controller(name).params
+            for k in _per_joint(paper):
+                with pytest.raises(ValueError, match=rf"\.{k} must have one number or {n} entries"):
+                    make_controller(name, nominal=arm, **{k: getattr(paper, k) + (1.0,) * (3 - len(getattr(paper, k)))})
         else:
             with pytest.raises(ValueError, match=rf"\.(K1|Kp) must have one number or {n} entries.*paper's 3-link arm"):
                 make_controller(name, nominal=arm)

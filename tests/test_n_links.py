@@ -98,10 +98,10 @@ def test_the_env_runs_at_n_in_residual_and_plain_mode(n):
         o, r, term, trunc, info = env.step(np.zeros(n, dtype=np.float32))
         assert np.isfinite(r) and not term
     assert trunc and info["episode_metrics"]["violating_samples"] == 0
-    # plain mode: the zero-torque inner controller takes the observer's arm; its default reward
-    # compares with a law that has gains for 3 links only, and is refused by name
-    with pytest.raises(ValueError, match="reward_weights: in plain mode"):
-        gym.make("PlanarBLF-v0", scenario=sc, observer=obs)
+    # plain mode: the zero-torque inner controller takes the observer's arm; the default reward's
+    # reference is the proposed law on the scenario's arm, its gains carried to n (docs/family.md)
+    ref = gym.make("PlanarBLF-v0", scenario=sc, observer=obs).unwrapped.core._reference_law()
+    assert ref.name == "proposed" and ref.nominal == sc.arm and len(ref.params.K2) == n
     plain = gym.make("PlanarBLF-v0", scenario=sc, observer=obs, reward_weights={})
     check_env(plain.unwrapped, skip_render_check=True)
     assert plain.action_space.shape == (n,)

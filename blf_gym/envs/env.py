@@ -172,6 +172,8 @@ class PlanarBLFEnv(gym.Env):
     observer (LESO, k0 = 200) runs on the measured joint angles inside the env, so the agent
     gets velocity and disturbance estimates but never the true state (unless ``privileged``).
     Every agent step covers ``control_period`` (10 ms by default: 100 integration steps).
+    ``n_links`` (2 to 7) makes the task family's arm of that many links instead of the paper's 3
+    (docs/family.md); actions, observations and info arrays then have n entries per joint signal.
 
     * **Plain mode** (``PlanarBLF-v0``, ``controller=None``): the action is the torque,
       ``u = max_torque * a``.
@@ -218,6 +220,7 @@ class PlanarBLFEnv(gym.Env):
     env = gym.make("PlanarBLF-v0", scenario="paper-0.5hz", control_period=0.005)
     env = gym.make("PlanarBLFResidual-v0", controller="proposed", residual_scale=2.0)
     env = gym.make("PlanarBLF-v0", scenario="randomized")          # the randomized suite
+    env = gym.make("PlanarBLFResidual-v0", n_links=5)              # the task family's 5-link arm
     obs, info = env.reset(seed=0, options={{"payload": 0.15}})       # per-episode variations
     ```
 {arguments_table('    ')}

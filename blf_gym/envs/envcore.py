@@ -18,7 +18,8 @@ from blf_gym.plugins.blocks import NO_CONTROLLER, Controller, Observer, Residual
 from blf_gym.plugins.registry import available_controllers, available_observers, make_controller, make_observer
 from blf_gym.kernel.reward import (R_ALIVE, R_PENALTY, R_REWARD, R_TERM0, R_TERMINATED, R_TRUNCATED, R_VIOLATED, SCORE_REWARD,
                      STEP_ROWS, SUM_E2_JOINT, SUM_SAMPLES, TERMS, RewardWeights, score_step, step_outputs)
-from blf_gym.model.params import (DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, check_reals,
+from blf_gym.model.family import PAPER_LINKS, preset_links
+from blf_gym.model.params import (ArmParams, DT_MIN, MAX_DURATION, PRESETS, Scenario, check_bool, check_int, check_real, check_reals,
                      usable_cores)
 from blf_gym.envs.observation import (OBSERVATION, SQUASH_DISTURBANCE, SQUASH_REF_ACCELERATION, SQUASH_VELOCITY,
                           groups, observation_index, observation_layout, observe_batch, optional_observations,
@@ -69,9 +70,14 @@ class Argument(NamedTuple):
 
 
 ARGUMENTS: tuple[Argument, ...] = (
-    Argument("scenario", "-", '"paper-0.1hz", "paper-0.5hz", "randomized", "stress" or a Scenario',
+    Argument("scenario", "-", '"paper-0.1hz", "paper-0.5hz", a task-family preset ("n5-0.1hz"), "randomized", "stress" '
+             'or a Scenario',
              'the episode\'s plant, reference, bounds and disturbances; "randomized" draws the training suite per '
              'episode, "stress" the held-out stress suite (for evaluation only)'),
+    Argument("n_links", "-", "None (the scenario's arm: 3 for the paper's) or 2 to 7",
+             "the task family's arm of that many links (blf_gym.model.family, docs/family.md): a suite is drawn "
+             'around its 0.1 Hz preset and "paper-0.1hz" / "paper-0.5hz" stand for its presets; laws and observers '
+             "given by name take that arm as their model, with their gains carried to it"),
     Argument("controller", "-", 'None or "none", "bc", "lesobc", "proposed", a registered plug-in\'s name or a '
              'Controller',
              "None (or \"none\"): plain mode, the action is the torque. A law: residual mode, u = u_law + residual_scale * a, "
@@ -240,6 +246,21 @@ def warn_if_oversubscribed(env_threads: int, owner: str) -> None:
             "(or set OMP_NUM_THREADS) before training, or pass threads= to the env")
 
 
+def named_block(owner: str, kind: str, spec: Any, arm: ArmParams) -> Any:
+    """The controller or observer (``kind``) ``spec`` for an env on ``arm``: an object as it is; a
+    registered name built by its factory, with ``arm`` as its model (``nominal``) when the arm has
+    other than the paper's 3 links (at 3 links as always: the factory's own, the paper's Table 1
+    arm). A factory that cannot serve the arm (a gain it needs per joint, a plug-in written for 3
+    joints) is reported as one ValueError naming the block and the arm's links."""
+    make = make_controller if kind == "controller" else make_observer
+    if not isinstance(spec, str) or spec == "none" or arm.n_links == PAPER_LINKS:
+        return make(spec)
+    try:
+        return make(spec, nominal=arm)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{owner} {kind} {spec!r} does not serve an arm of {arm.n_links} links (n_links): {exc}") from None
+
+
 def check_env_kwargs(kwargs: Mapping[str, Any]) -> None:
     """ValueError naming any keyword argument the env does not know, with the accepted ones."""
     import inspect
@@ -304,7 +325,8 @@ def _law_scale(base: Scenario, suite: str | None, level: int, max_torque: float 
     steps = {sc.sim.n_steps for sc in scs}
     if len(steps) != 1:
         raise ValueError("law_action_scale: the draws must share one duration")
-    loop = ClosedLoop(scs, "proposed", "leso", threads=min(len(scs), usable_cores()))
+    loop = ClosedLoop(scs, named_block(o, "controller", "proposed", base.arm), named_block(o, "observer", "leso", base.arm),
+                      threads=min(len(scs), usable_cores()))
     u, tc = CHANNELS.index("u"), CHANNELS.index("t")
     top = np.zeros(loop.n)
     total, chunk = steps.pop(), 10 * loop.steps_per_sample * 100
@@ -467,8 +489,10 @@ def _check_kinds(o: str, scenario: Any, controller: Any, observer: Any, observat
                  variations: Any, reward_weights: Any, residual_filter: Any) -> None:
     """The env's arguments that name things (a scenario, blocks, observation entries, knobs, reward
     weights, a filter) are of a kind it accepts; ValueError naming the argument otherwise."""
-    if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and scenario in (*PRESETS, *SUITES))):
-        raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)} or a "
+    if not (isinstance(scenario, Scenario) or (isinstance(scenario, str) and (scenario in SUITES
+                                                                             or preset_links(scenario) is not None))):
+        raise ValueError(f"{o} scenario must be one of {sorted(PRESETS) + list(SUITES)}, a task-family preset "
+                         f"(blf_gym.model.family.family_presets: 'n2-0.1hz' ... 'n7-0.5hz') or a "
                          f"blf_gym.model.params.Scenario, got {scenario!r}")
     if not (controller is None or isinstance(controller, (str, Controller))):
         raise ValueError(f"{o} controller must be None, one of {available_controllers()} or a "
@@ -514,6 +538,7 @@ class EnvCore:
         self,
         num_envs: int,
         scenario: "str | Scenario" = "paper-0.1hz",
+        n_links: int | None = None,
         controller: "str | Controller | None" = None,
         observer: "str | Observer" = "leso",
         residual_scale: float = 2.0,
@@ -564,10 +589,11 @@ class EnvCore:
                             hint=" (the cores this process may use: more threads than cores only wait)")
         self.bound_scale = bound_scale  # checked by the property's setter
         self.level = check_level(o, level)
-        self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std)
+        self._set_scenario(scenario, duration, max_torque, dt, variations, angle_noise_std, n_links)
         self._set_period(control_period)
-        self.controller = NO_CONTROLLER if controller is None else make_controller(controller)
-        self.observer = make_observer(observer)
+        self.controller = NO_CONTROLLER if controller is None else named_block(o, "controller", controller,
+                                                                                self.nominal)
+        self.observer = named_block(o, "observer", observer, self.nominal)
         self.residual = self.controller is not NO_CONTROLLER
         if not self.residual and self.observer.nominal != NO_CONTROLLER.nominal:
             # plain mode on another arm: the zero-torque inner controller shares the observer's model
@@ -579,12 +605,6 @@ class EnvCore:
         self._set_reward(reward_weights)
         self.start_time = self._check_start_time(start_time)
         self.n = self.base.arm.n_links
-        if not self.residual and self.n != 3 and (self.weights.score > 0 or self.weights.relative):
-            raise ValueError(
-                f"{o} reward_weights: in plain mode the reward's score and relative terms compare with the "
-                f"proposed law, whose gains are the paper's, for 3 links; this arm has {self.n}. Give "
-                "reward_weights={} (the shaped reward) or another reward without them, or run the law in "
-                "residual mode with gains for this arm")
         self._build_loop(residual_filter, threads)
         self._set_observation(observation_extras)
         self._allocate()
@@ -605,10 +625,18 @@ class EnvCore:
                                        hint=" (a factor on the funnel's width; 1 is the benchmark's)")
 
     def _set_scenario(self, scenario: "str | Scenario", duration: float | None, max_torque: float | None,
-                      dt: float | None, variations: Mapping[str, Any] | None, angle_noise_std: float | None) -> None:
+                      dt: float | None, variations: Mapping[str, Any] | None, angle_noise_std: float | None,
+                      n_links: int | None) -> None:
         """The base scenario (a preset, or a suite's base) with the simulation overrides and the
-        variations applied, and the suite to draw from (None: the base itself every episode)."""
-        base, suite = resolve_scenario(scenario)
+        variations applied, the suite to draw from (None: the base itself every episode), and the
+        arm the blocks given by name take as their model (:attr:`nominal`)."""
+        try:
+            base, suite = resolve_scenario(scenario, n_links)
+        except ValueError as exc:
+            raise ValueError(f"{self.owner} {exc}") from None
+        self.nominal = base.arm
+        """The arm a law or observer given by name models: the scenario's before any variation (the
+        paper's Table 1 arm at 3 links, whatever the scenario, as the paper's laws always had)."""
         sim_over = {k: v for k, v in (("duration", duration), ("max_torque", max_torque), ("dt", dt))
                     if v is not None}
         if sim_over:
@@ -683,7 +711,7 @@ class EnvCore:
                              "residual; it needs residual mode (a controller), not plain mode")
         if residual_filter is not None and not self.residual:
             # plain mode: the filter acts on the agent's torque minus the proposed law's, computed alongside
-            inner, plain = make_controller("proposed"), True
+            inner, plain = named_block(o, "controller", "proposed", self.nominal), True
         else:
             inner, plain = self.controller, False
         if residual_filter is not None and not inner.filters:
@@ -916,7 +944,8 @@ class EnvCore:
         """The reward's reference law: the inner controller in residual mode, the proposed law in
         plain mode (made once: a registry look-up reads the installed packages' entry points)."""
         if self._ref_law is None:
-            self._ref_law = self.controller if self.residual else make_controller("proposed")
+            self._ref_law = self.controller if self.residual else named_block(self.owner, "controller", "proposed",
+                                                                              self.nominal)
         return self._ref_law
 
     def _start_law(self, idx: Sequence[int], scenarios: Sequence[Scenario]) -> None:

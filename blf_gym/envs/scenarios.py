@@ -57,6 +57,8 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from blf_gym.envs.protocol import CERTIFICATE_SEED_OFFSET, HELD_OUT_SUITES, STRESS_SEED_OFFSET, SUITES
+from blf_gym.model.family import (FAMILY_LINKS, PAPER_LINKS, check_n_links, family_base, family_preset, family_presets,
+                                  preset_links)
 from blf_gym.model.params import PRESETS, Scenario, check_bool, check_real, is_real, preset, real_text
 
 __all__ = ["Knob", "KNOBS", "SHARED_KNOBS", "VARIATIONS", "SAFE_RANGES", "SUITE_RANGES", "STRESS_RANGES",
@@ -450,13 +452,30 @@ def outside_training(sc: Scenario, base: Scenario | None = None) -> list[str]:
             if any(not (k.suite[0] - 1e-12 <= v <= k.suite[1] + 1e-12) for v in k.read(sc, base))]
 
 
-def resolve_scenario(spec: "str | Scenario") -> tuple[Scenario, str | None]:
-    """(base scenario, suite name or None) for a preset name, a suite name or a Scenario."""
+def resolve_scenario(spec: "str | Scenario", n_links: int | None = None) -> tuple[Scenario, str | None]:
+    """(base scenario, suite name or None) for a preset name (the paper's, or a task-family
+    member's such as ``"n5-0.1hz"``), a suite name or a Scenario. With ``n_links`` (2 to 7,
+    :mod:`blf_gym.model.family`) a suite is drawn around that member's 0.1 Hz preset and a paper
+    preset's name stands for that member's preset of the same frequency (``"paper-0.5hz"`` is
+    ``"n5-0.5hz"`` at 5 links); a Scenario or a member's preset of another arm is refused, naming
+    n_links."""
+    if n_links is not None:
+        n_links = check_n_links("scenario:", n_links)
     if isinstance(spec, Scenario):
+        if n_links is not None and spec.arm.n_links != n_links:
+            raise ValueError(f"scenario: n_links={n_links} but the Scenario's arm has {spec.arm.n_links} links; give "
+                             "one of them, or a Scenario of that arm")
         return spec, None
     if isinstance(spec, str) and spec in SUITES:
-        return preset("paper-0.1hz"), spec
-    if isinstance(spec, str) and spec in PRESETS:
-        return preset(spec), None
-    raise ValueError(f"unknown scenario {spec!r}: scenario must be one of "
-                     f"{sorted(PRESETS) + list(SUITES)} or a blf_gym.model.params.Scenario")
+        return family_base(n_links if n_links is not None else PAPER_LINKS), spec
+    links = preset_links(spec) if isinstance(spec, str) else None
+    if links is not None:
+        if n_links is not None and links != n_links:
+            if links != PAPER_LINKS or spec not in PRESETS:
+                raise ValueError(f"scenario: the preset {spec!r} is the {links}-link arm's, not n_links={n_links}'s "
+                                 f"(its presets: {list(family_presets(n_links))})")
+            spec = family_presets(n_links)[list(PRESETS).index(spec)]
+        return family_preset(spec), None
+    names = [p for m in FAMILY_LINKS for p in family_presets(m)]
+    raise ValueError(f"unknown scenario {spec!r}: scenario must be one of {names + list(SUITES)} or a "
+                     "blf_gym.model.params.Scenario")
