@@ -1026,6 +1026,19 @@ def family_law_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def family_cost_table() -> str:
+    """The closed loop's cost per arm-step per member and the fit (docs/speed/links.json, written by
+    ``python benchmarks/bench_links.py --json docs/speed/links.json``)."""
+    d = _load("speed", "links.json")
+    a, b, c = d["fit_a_b_c"]
+    out = ["| n | " + " | ".join(str(n) for n in d["n"]) + " |", "|---|" + "---|" * len(d["n"]),
+           "| us per arm-step | " + " | ".join(f"{u:.3f}" for u in d["us_per_arm_step"]) + " |",
+           "| fit a + b n + c n^2 | " + " | ".join(f"{a + b * n + c * n * n:.3f}" for n in d["n"]) + " |"]
+    return "\n".join(out) + (f"\n\nFit: a = {a:.3f}, b = {b:.3f}, c = {c:.4f} us; log-log slope from n = {d['n'][0]} "
+                             f"to {d['n'][-1]}: {d['loglog_slope']:.2f} (minimum of {d['repeats']} calls of "
+                             f"{d['steps']} steps per member).\n")
+
+
 def lagrangian_hyperparameters_table() -> str:
     """PPO-Lagrangian's own hyperparameters with their defaults, in the order of
     ``PPOLagrangian.__init__`` in ``agents/lagrangian.py`` (read from its source, so that torch is
@@ -1341,7 +1354,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                        "offpolicy-select": lambda: statistics_table("budget/offpolicy_select",
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
     "docs/levels.md": {"levels": levels_table, "floor": floor_table},
-    "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table},
+    "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table,
+                       "family-cost": family_cost_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},

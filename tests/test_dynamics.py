@@ -298,10 +298,14 @@ def pinocchio_model(arm: ArmParams):
     return pin, model
 
 
-@pytest.mark.parametrize("n", [2, 3, 4])
-def test_matches_pinocchio_crba_and_rnea(n):
+@pytest.mark.parametrize("n,family", [(2, False), (3, False), (4, False), (2, True), (4, True), (5, True), (6, True),
+                                      (7, True)], ids=lambda v: str(v))
+def test_matches_pinocchio_crba_and_rnea(n, family):
+    # random arms of 2-4 links and the paper's, and the task family's members (docs/family.md)
+    from blf_gym.model.family import family_arm
+
     rng = np.random.default_rng(60 + n)
-    arm = PAPER if n == 3 else random_arm(rng, n)
+    arm = family_arm(n) if family else PAPER if n == 3 else random_arm(rng, n)
     pin, model = pinocchio_model(arm)
     data = model.createData()
     zero = np.zeros(n)
