@@ -13,6 +13,8 @@ import numpy as np
 
 from blf_gym.results.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats
 from blf_gym.envs.levels import DEFAULT_LEVEL, apply_level, check_level
+from blf_gym.envs.envcore import named_block
+from blf_gym.model.family import PAPER_LINKS, check_n_links, family_arm, family_preset, family_presets
 from blf_gym.model.params import PRESETS, Scenario, preset
 from blf_gym.envs.protocol import (CURVE_GROUPS, EVAL_SEED_OFFSET, PROTOCOL_SEEDS, REFERENCE, SUITES,  # noqa: F401 (re-exported)
                                    suite_seed_offset)
@@ -22,7 +24,7 @@ from blf_gym.envs.scenarios import apply_variations, sample_suite, variation_lab
 from .loading import scoring_env_kwargs
 
 __all__ = ["registered_controllers", "curve_scenarios", "build_scenarios", "CONTROLLER_BATCH", "AGENT_BATCH",
-           "controller_episodes", "evaluate_controller", "LAW_HOLD_S", "agent_group_episodes", "agent_episodes",
+           "member_blocks", "controller_episodes", "evaluate_controller", "LAW_HOLD_S", "agent_group_episodes", "agent_episodes",
            "evaluate_agent", "with_filter", "law_env_kwargs", "law_reference_groups", "law_reference"]
 
 
@@ -45,7 +47,7 @@ def curve_scenarios(suite_seeds: int, duration: float | None = None,
 
 def build_scenarios(
     presets: Sequence[str], suite_seeds: "int | Sequence[int]", kwargs: dict[str, Any], duration: float | None,
-    suite: "str | Sequence[str]" = "randomized", level: int = DEFAULT_LEVEL,
+    suite: "str | Sequence[str]" = "randomized", level: int = DEFAULT_LEVEL, n_links: int | None = None,
 ) -> list[tuple[str, list[Scenario]]]:
     """[(scenario label, episodes)]: each preset is one episode; each suite in ``suite`` has its
     ``suite_seeds`` episodes (one count for all suites, or one per suite).
@@ -54,8 +56,16 @@ def build_scenarios(
     or ``+custom`` when they do not fit in a short label), so a varied result is never mistaken for
     the plain one; the variations themselves are recorded in each record's provenance by blf-eval.
     Below the full benchmark (``level`` 3, blf_gym.envs.levels) every episode is taken to that level after
-    its draw and its variations, and every label gains ``@L<level>``."""
+    its draw and its variations, and every label gains ``@L<level>``.
+
+    With ``n_links`` (2 to 7, :mod:`blf_gym.model.family`) the groups are that member's: a paper
+    preset's name stands for the member's preset of the same frequency (``paper-0.1hz`` is
+    ``n5-0.1hz`` at 5 links), the suites are drawn around its 0.1 Hz preset with the same seeds, and
+    a suite's label names the member (``n5-randomized``); at 3 links, or None, the paper's groups."""
     level = check_level("blf-eval: --level", level)
+    if n_links is not None:
+        n_links = check_n_links("blf-eval: --n-links", n_links)
+    member = n_links is not None and n_links != PAPER_LINKS
     tag = "" if level == DEFAULT_LEVEL else f"@L{level}"
     suites = [suite] if isinstance(suite, str) else list(suite)
     counts = [suite_seeds] * len(suites) if isinstance(suite_seeds, int) else list(suite_seeds)
@@ -71,7 +81,8 @@ def build_scenarios(
     for name in presets:
         if name not in PRESETS:
             raise ValueError(f"unknown scenario {name!r}; accepted: {sorted(PRESETS)} (and --suite-seeds)")
-        sc = preset(name, **sim_over)
+        sc = family_preset(family_presets(n_links)[list(PRESETS).index(name)], **sim_over) if member else preset(
+            name, **sim_over)
         if kwargs:
             sc = apply_variations(sc, kwargs)  # named with the variations' label (blf_gym.envs.scenarios)
         sc = apply_level(sc, level)  # named with its level
@@ -82,11 +93,12 @@ def build_scenarios(
         offset = suite_seed_offset(name)
         eps = []
         for k in range(count):
-            sc = sample_suite(np.random.default_rng(offset + k), preset("paper-0.1hz", **sim_over), name)
+            base = family_preset(family_presets(n_links)[0], **sim_over) if member else preset("paper-0.1hz", **sim_over)
+            sc = sample_suite(np.random.default_rng(offset + k), base, name)
             if kwargs:
                 sc = apply_variations(sc, kwargs)
             eps.append(apply_level(sc, level))
-        groups.append((name + variation_label(kwargs) + tag, eps))
+        groups.append(((f"n{n_links}-" if member else "") + name + variation_label(kwargs) + tag, eps))
     return groups
 
 
@@ -102,13 +114,27 @@ shipped agents, torch's actions for a row are the same to the bit for any batch 
 but not for a batch of one row, so no batch is left with a single episode of a longer list."""
 
 
+def member_blocks(name: Any, observer: Any, scenarios: Sequence[Scenario]) -> tuple[Any, Any]:
+    """The controller and observer for episodes of one member of the task family: the names as
+    they are on the paper's 3 links; on another arm, built with the member's arm as their model
+    and their gains carried to it (blf_gym.envs.envcore.named_block), or one ValueError naming the
+    block that cannot serve it."""
+    n = scenarios[0].arm.n_links if scenarios else PAPER_LINKS
+    if n == PAPER_LINKS:
+        return name, observer
+    arm = family_arm(n)
+    return (named_block("blf-eval:", "controller", name, arm), named_block("blf-eval:", "observer", observer, arm))
+
+
 def controller_episodes(name: str, scenarios: Sequence[Scenario], threads: int | None = None,
                         observer: str = "leso", batch: int = CONTROLLER_BATCH) -> Iterator[Any]:
     """A baseline controller's trajectories on the inner path, one per scenario, in order, computed
     ``batch`` episodes at a time (episode i has noise seed ``EVAL_SEED_OFFSET + i``), so a caller
-    that reduces each one as it comes keeps at most a batch of 1 ms records in memory."""
+    that reduces each one as it comes keeps at most a batch of 1 ms records in memory. Episodes on
+    an arm of the task family other than the paper's take the member's blocks (:func:`member_blocks`)."""
     from blf_gym.kernel.simulate import LANES, simulate_batch
 
+    name, observer = member_blocks(name, observer, scenarios)
     for lo in range(0, len(scenarios), batch):
         part = list(scenarios[lo : lo + batch])
         # the batch build even for one episode (a preset, a plot's trace): one build per law

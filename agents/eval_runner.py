@@ -27,7 +27,7 @@ from . import lawcache
 from .lawcache import law_key, load_law, store_law
 # the one agent loader, re-exported here
 from .loading import load_agent, load_policy
-from .episodes import (agent_group_episodes, controller_episodes, law_env_kwargs, law_reference,
+from .episodes import (agent_group_episodes, controller_episodes, member_blocks, law_env_kwargs, law_reference,
                        law_reference_groups, with_filter)
 from .eval_tables import LEGEND, PlotTrace, plots, table
 
@@ -341,12 +341,13 @@ def _ready_kernels(jobs: Sequence[tuple[str, str, Any]], groups: Sequence[tuple[
     from blf_gym.kernel.simulate import ClosedLoop
 
     t0 = time.perf_counter()
-    sc = groups[0][1][0] if groups and groups[0][1] else None
-    if sc is None:
+    firsts = {scs[0].arm.n_links: scs[0] for _, scs in groups if scs}  # one build per member of the family
+    if not firsts:
         return
     names = [name for name, _, agent in jobs if agent is None] + (["proposed"] if laws_needed else []) + list(extra)
     for name in dict.fromkeys(names):
-        ClosedLoop([sc, sc], name, observer)  # a batch build, as the baselines' batches step
+        for sc in firsts.values():
+            ClosedLoop([sc, sc], *member_blocks(name, observer, [sc]))  # a batch build, as the baselines' batches step
     for _, _, agent in jobs:
         if agent is not None and not agent[2].get("policy"):
             EnvCore(2, threads=1, **law_env_kwargs(agent[2]))  # the agent's law reference

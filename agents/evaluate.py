@@ -116,6 +116,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--suite-seeds", type=int, nargs="+", default=None, metavar="N",
                    help="episodes per suite, one count for all or one per --suite; 0 for the presets alone "
                         "(default: the protocol's 20 randomized and 50 stress, or 20 per suite named)")
+    p.add_argument("--n-links", type=int, nargs="+", default=None, metavar="N",
+                   help="score on these members of the task family (2 to 7 links, docs/family.md): each N's presets "
+                        "(named like the paper's, n5-0.1hz ...) and suites (n5-randomized ...), drawn by the same "
+                        "rules and seeds; laws take each arm as their model, with their gains carried to it; an "
+                        "agent is scored on the groups of the arm it was trained on (default: the paper's 3 links)")
     p.add_argument("--scenario-kwargs", type=str, default="{}", metavar="JSON",
                    help='scenario variations applied to every episode, e.g. \'{"payload": 0.15, "force": 20}\' '
                         "(default: none)")
@@ -206,6 +211,23 @@ def _load_agents(args: argparse.Namespace, agent_paths: list[Path]) -> list[tupl
     return agents + [(POLICY_PREFIX + name, *load_policy(name)) for name in args.policies]
 
 
+def _check_arms(agent_paths: list[Path], groups: list[tuple[str, list[Any]]]) -> None:
+    """Every agent acts on the arm every group has (an observation and action of n entries per
+    joint signal), read from its metadata before it is loaded: ValueError naming the agent and the
+    arms otherwise. A folder without readable metadata is left to the loader to report."""
+    arms = sorted({scs[0].arm.n_links for _, scs in groups if scs})
+    for path in agent_paths:
+        folder = path if path.is_dir() else path.parent
+        try:
+            meta = json.loads((folder / "metadata.json").read_text())
+        except (OSError, ValueError):
+            continue
+        n = (meta.get("env_kwargs") or {}).get("n_links") or 3
+        if arms != [n]:
+            raise ValueError(f"--n-links: {path} acts on an arm of {n} links, and the groups are of {arms}: score it "
+                             f"with --n-links {n} alone (an agent trained without n_links acts on the paper's 3)")
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import shlex
 
@@ -216,13 +238,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         kwargs = _checked_args(args)
         seeds = args.suite_seeds if args.suite_seeds is not None else [PROTOCOL_SEEDS[s] for s in args.suite]
-        groups = build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite, args.level)
+        groups = [g for n in (args.n_links or [None])
+                  for g in build_scenarios(args.scenarios, seeds, kwargs, args.duration, args.suite, args.level, n)]
         if not groups:
             raise ValueError("no scenarios: give --scenarios and/or --suite-seeds")
-        agent_paths = (sorted(PRETRAINED.glob("*/model.zip")) if args.agents is None
-                       else [Path(a) for a in args.agents])
+        # the shipped agents act on the paper's arm: with --n-links they are scored only when asked for
+        agent_paths = ((sorted(PRETRAINED.glob("*/model.zip")) if args.n_links is None else [])
+                       if args.agents is None else [Path(a) for a in args.agents])
         if args.jobs > 1:  # they boot while the agents load below
             workers = Workers(args.jobs, bool(agent_paths))
+        _check_arms(agent_paths, groups)
         agents = _load_agents(args, agent_paths)
         if not args.controllers and not agents:
             raise ValueError("nothing to evaluate: give --controllers and/or --agents")

@@ -192,3 +192,44 @@ def test_a_member_the_env_cannot_make_is_one_error_naming_the_field(kwargs, matc
 
     with pytest.raises(ValueError, match=match):
         gym.make("PlanarBLFResidual-v0", **kwargs)
+
+
+# ---- blf-eval on members (kernel: the law's batch build at 2 links) ----------------------------
+
+def test_the_groups_of_a_member_are_its_presets_and_suites_drawn_by_the_same_seeds():
+    from agents.episodes import build_scenarios
+
+    paper = build_scenarios(["paper-0.1hz", "paper-0.5hz"], [2, 1], {}, None, ["randomized", "stress"])
+    assert build_scenarios(["paper-0.1hz", "paper-0.5hz"], [2, 1], {}, None, ["randomized", "stress"], n_links=3) == paper
+    five = build_scenarios(["paper-0.1hz", "paper-0.5hz"], [2, 1], {}, None, ["randomized", "stress"], n_links=5)
+    assert [g for g, _ in five] == ["n5-0.1hz", "n5-0.5hz", "n5-randomized", "n5-stress"]
+    assert all(sc.arm == family_arm(5) or sc.arm.lengths == family_arm(5).lengths for _, scs in five for sc in scs)
+    short = build_scenarios(["paper-0.1hz"], [1], {}, 2.0, ["randomized"], n_links=5)
+    assert all(sc.sim.duration == 2.0 and sc.arm.n_links == 5 for _, scs in short for sc in scs)
+    # the same seeds draw the same knobs: the paper's training draw k and the member's share them
+    (_, a), (_, b) = paper[2], five[2]
+    assert [sc.reference.frequency for sc in a] == [sc.reference.frequency for sc in b]
+    assert [sc.force.onset for sc in a] == [sc.force.onset for sc in b]
+    with pytest.raises(ValueError, match=r"--n-links.*n_links must be an integer in \[2, 7\]"):
+        build_scenarios(["paper-0.1hz"], 0, {}, None, n_links=9)
+
+
+@pytest.mark.slow
+def test_blf_eval_scores_the_law_on_a_member_and_refuses_an_agent_of_another_arm(tmp_path, capsys):
+    import json
+
+    from agents.evaluate import main
+
+    out = tmp_path / "eval"
+    rc = main(["--n-links", "2", "--controllers", "proposed", "--reference", "none", "--scenarios", "paper-0.5hz",
+               "--suite", "randomized", "--suite-seeds", "2", "--duration", "0.5", "--out", str(out), "--no-plots",
+               "--no-progress", "--jobs", "1"])
+    assert rc == 0, capsys.readouterr().err
+    recs = json.loads((out / "results.json").read_text())["records"]
+    assert [r["scenario"] for r in recs] == ["n2-0.5hz", "n2-randomized"]
+    assert all(len(r["rmse_deg"]) == 2 and r["violations"] == [0, 0] for r in recs)
+    capsys.readouterr()
+    assert main(["--n-links", "2", "--agents", "agents/pretrained/ppo_residual", "--no-progress", "--jobs", "1"]) == 2
+    err = capsys.readouterr().err
+    # said before the agent is loaded (and its kernels compiled): one line
+    assert "ppo_residual acts on an arm of 3 links, and the groups are of [2]" in err and err.count("\n") == 1
