@@ -20,6 +20,10 @@ point is the first, in the order the grid lists them (most restrictive first), w
 the law's own episodes untouched (the same RMSE to the last bit on every one), so that the law
 with the filter is the law.
 
+With ``--n-links N`` the search is on the task family's member of N links (docs/family.md): its
+two presets and its training draws, every law (the candidate and the proposed law it is scored
+against) on its arm, and a scalar for a per-joint gain scales the vector carried to that arm.
+
 A grid of a few points is enumerated directly: each point is one batched kernel call of a few
 episodes, and a sweep library's scheduler would add nothing but start-up time.
 """
@@ -37,28 +41,38 @@ import numpy as np
 
 from blf_gym.results.io import atomic_write_text, help_text
 from blf_gym.results.metrics import episode_stats, provenance, score_vs_law
-from blf_gym.model.params import preset
-from blf_gym.plugins.registry import available_controllers, make_controller
+from blf_gym.model.family import PAPER_LINKS, check_n_links, family_arm, family_base, family_preset, family_presets
+from blf_gym.plugins.registry import available_controllers, make_controller, make_observer
 from blf_gym.envs.scenarios import sample_suite
 from blf_gym.kernel.simulate import simulate_batch
 
 __all__ = ["candidate_kwargs", "selection_scenarios", "evaluate_gains", "evaluate_filter", "main"]
 
 
-def selection_scenarios(episodes: int) -> list[tuple[str, Any]]:
+def selection_scenarios(episodes: int, n_links: int = PAPER_LINKS) -> list[tuple[str, Any]]:
     """(label, scenario): the two presets, then ``episodes`` training-suite draws from training seeds
-    0 .. episodes - 1."""
-    out = [(name, preset(name)) for name in ("paper-0.1hz", "paper-0.5hz")]
-    base = preset("paper-0.1hz")
+    0 .. episodes - 1; of the task family's member of ``n_links`` links (blf_gym.model.family), the
+    paper's by default."""
+    out = [(name, family_preset(name)) for name in family_presets(n_links)]
+    base = family_base(n_links)
     out += [(f"randomized/{k}", sample_suite(np.random.default_rng(k), base, "randomized")) for k in range(episodes)]
     return out
 
 
-def candidate_kwargs(controller: str, point: dict[str, float]) -> dict[str, Any]:
+def _law(name: str, n_links: int, **kwargs: Any) -> Any:
+    """The controller ``name`` for the member of ``n_links`` links: on another arm than the paper's,
+    built on it, its defaults carried (baselines.params)."""
+    if n_links == PAPER_LINKS:
+        return make_controller(name, **kwargs)
+    return make_controller(name, nominal=family_arm(n_links), **kwargs)
+
+
+def candidate_kwargs(controller: str, point: dict[str, float], n_links: int = PAPER_LINKS) -> dict[str, Any]:
     """The factory's keyword arguments for one grid point: a scalar for a per-joint (tuple) gain
     multiplies the default vector by value / its first entry, so ``K1=40`` means the paper's
-    K1 = (20, 20, 15) scaled to (40, 40, 30); any other gain is passed as it is."""
-    defaults = make_controller(controller).params
+    K1 = (20, 20, 15) scaled to (40, 40, 30); any other gain is passed as it is. On another member
+    of the task family (``n_links``) the vector scaled is the law's default carried to that arm."""
+    defaults = _law(controller, n_links).params
     kw: dict[str, Any] = {}
     for k, v in point.items():
         d = getattr(defaults, k, None)
@@ -68,8 +82,8 @@ def candidate_kwargs(controller: str, point: dict[str, float]) -> dict[str, Any]
     return kw
 
 
-def _rmse_and_failure(controller: Any, scenarios: Sequence[Any], residual_filter: Any = None
-                      ) -> list[tuple[list[float] | None, bool, float]]:
+def _rmse_and_failure(controller: Any, scenarios: Sequence[Any], residual_filter: Any = None,
+                      observer: Any = "leso") -> list[tuple[list[float] | None, bool, float]]:
     """Per scenario: the per-joint RMSE (degrees), whether the episode failed, the RMS torque (N m,
     the root of the mean over samples of |u|^2). With ``residual_filter``, through that filter with
     a zero residual."""
@@ -80,7 +94,7 @@ def _rmse_and_failure(controller: Any, scenarios: Sequence[Any], residual_filter
     res: dict[int, Any] = {}
     for idx in by_duration.values():
         zero = None if residual_filter is None else np.zeros((len(idx), scenarios[idx[0]].arm.n_links))
-        trajs = simulate_batch([scenarios[i] for i in idx], controller, noise_seeds=idx, residual=zero,
+        trajs = simulate_batch([scenarios[i] for i in idx], controller, observer, noise_seeds=idx, residual=zero,
                                residual_filter=residual_filter)
         for i, tr in zip(idx, trajs):
             st = episode_stats(tr)
@@ -92,20 +106,22 @@ def _rmse_and_failure(controller: Any, scenarios: Sequence[Any], residual_filter
 
 
 def evaluate_gains(controller: str, grid: dict[str, list[float]], episodes: int = 8, effort: float = 1.25,
-                   progress: bool = True) -> dict[str, Any]:
+                   progress: bool = True, n_links: int = PAPER_LINKS) -> dict[str, Any]:
     """Every grid point's per-episode RMSE, failures, torque and geometric-mean score against the
-    proposed law (see the module docstring); the points ranked, the chosen one first."""
+    proposed law (see the module docstring); the points ranked, the chosen one first. On another
+    member of the task family (``n_links``), its presets and training draws, every law on its arm."""
     from tqdm import tqdm
 
-    labelled = selection_scenarios(episodes)
+    labelled = selection_scenarios(episodes, n_links)
     scenarios = [sc for _, sc in labelled]
-    law = _rmse_and_failure(make_controller("proposed"), scenarios)
+    obs = "leso" if n_links == PAPER_LINKS else make_observer("leso", nominal=family_arm(n_links))
+    law = _rmse_and_failure(_law("proposed", n_links), scenarios, observer=obs)
     keys = list(grid)
     points = [dict(zip(keys, vals)) for vals in itertools.product(*(grid[k] for k in keys))]
     rows = []
     for point in tqdm(points, desc=f"{controller} gains", disable=not progress, file=sys.stderr):
-        kw = candidate_kwargs(controller, point)
-        res = _rmse_and_failure(make_controller(controller, **kw), scenarios)
+        kw = candidate_kwargs(controller, point, n_links)
+        res = _rmse_and_failure(_law(controller, n_links, **kw), scenarios, observer=obs)
         scores = [score_vs_law(r, lr) for (r, _, _), (lr, _, _) in zip(res, law)]
         failed = [lab for (lab, _), (_, f, _) in zip(labelled, res) if f]
         ratio = max(u / lu for (_, _, u), (_, _, lu) in zip(res, law))
@@ -114,7 +130,8 @@ def evaluate_gains(controller: str, grid: dict[str, list[float]], episodes: int 
         rows.append({"point": point, "kwargs": kw, "failed_on": failed, "effort_ratio": ratio, "admissible": ok,
                      "score_geomean": geo, "rmse_deg": {lab: r for (lab, _), (r, _, _) in zip(labelled, res)}})
     rows.sort(key=lambda r: (not r["admissible"], -r["score_geomean"]))
-    return {"controller": controller, "grid": grid, "effort": effort, "episodes": [lab for lab, _ in labelled],
+    return {"controller": controller, "n_links": n_links, "grid": grid, "effort": effort,
+            "presets": list(family_presets(n_links)), "episodes": [lab for lab, _ in labelled],
             "law_rmse_deg": {lab: r for (lab, _), (r, _, _) in zip(labelled, law)},
             "law_u_rms": {lab: u for (lab, _), (_, _, u) in zip(labelled, law)},
             "law_failed_on": [lab for (lab, _), (_, f, _) in zip(labelled, law) if f],
@@ -174,7 +191,9 @@ def filter_table(result: dict[str, Any]) -> str:
 def table(result: dict[str, Any]) -> str:
     """The ranked grid as a Markdown table."""
     keys = list(result["grid"])
-    lines = [f"Gains of the `{result['controller']}` law on {len(result['episodes'])} selection episodes "
+    n = result.get("n_links", PAPER_LINKS)
+    arm = "" if n == PAPER_LINKS else f" on the task family's {n}-link arm"
+    lines = [f"Gains of the `{result['controller']}` law{arm} on {len(result['episodes'])} selection episodes "
              f"(the two presets and training-suite seeds 0-{len(result['episodes']) - 3}). Score: geometric "
              "mean of `score_vs_law` against the proposed law (higher is better); a point that breaks a "
              "bound or diverges anywhere is out, and so is one whose RMS torque exceeds "
@@ -184,7 +203,8 @@ def table(result: dict[str, Any]) -> str:
              "|" + "---|" * (len(keys) + 4)]
     for r in result["rows"]:
         rm = r["rmse_deg"]
-        worst = " / ".join("-" if rm[p] is None else f"{max(rm[p]):.4g}" for p in ("paper-0.1hz", "paper-0.5hz"))
+        worst = " / ".join("-" if rm[p] is None else f"{max(rm[p]):.4g}"
+                           for p in result.get("presets", ("paper-0.1hz", "paper-0.5hz")))
         score = f"{r['score_geomean']:.3f}" + ("" if r["admissible"] else " (out)")
         failed = ", ".join(r["failed_on"][:4]) + (f" (+{len(r['failed_on']) - 4})" if len(r["failed_on"]) > 4 else "")
         lines.append("| " + " | ".join(f"{r['point'][k]:g}" for k in keys) + f" | {score} | {r['effort_ratio']:.2f} | {worst} | {failed or 'none'} |")
@@ -217,6 +237,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="a gain and its values (repeatable; default: none, at least one is needed)")
     p.add_argument("--episodes", type=int, default=8, metavar="N",
                    help="training-suite draws besides the two presets (default 8)")
+    p.add_argument("--n-links", type=int, default=PAPER_LINKS, metavar="N",
+                   help="the task family's member to choose the gains on (2 to 7 links, docs/family.md): its presets "
+                        "and training draws, every law on its arm; the grid scales the gains carried to it (default 3, "
+                        "the paper's arm)")
     p.add_argument("--effort", type=float, default=1.25, metavar="X",
                    help="largest admissible RMS torque, as a multiple of the proposed law's on the same episode "
                         "(default 1.25)")
@@ -238,6 +262,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise ValueError(f"--effort must be a finite number > 0, got {args.effort}")
         if args.episodes < 0:
             raise ValueError(f"--episodes must be >= 0, got {args.episodes}")
+        check_n_links("--n-links:", args.n_links)
+        if args.filter is not None and args.n_links != PAPER_LINKS:
+            raise ValueError("--filter searches the paper's arm only (give --n-links 3 or leave it out)")
         points = [dict(p) for p in itertools.product(*(((k, v) for v in vs) for k, vs in grid.items()))]
         if args.filter is not None:
             filters = make_controller("proposed").filters
@@ -248,7 +275,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 filters[args.filter](**_filter_kwargs(point))
         else:
             for point in points:
-                make_controller(args.controller, **candidate_kwargs(args.controller, point))
+                _law(args.controller, args.n_links, **candidate_kwargs(args.controller, point, args.n_links))
     except ValueError as exc:
         print(f"python -m baselines.gains: error: {exc}", file=sys.stderr)
         return 2
@@ -256,7 +283,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         result = evaluate_filter(args.filter, grid, args.episodes, progress=not args.no_progress)
         text = filter_table(result)
     else:
-        result = evaluate_gains(args.controller, grid, args.episodes, args.effort, progress=not args.no_progress)
+        result = evaluate_gains(args.controller, grid, args.episodes, args.effort, progress=not args.no_progress,
+                                n_links=args.n_links)
         text = table(result)
     print(text, end="")
     if args.out is not None:

@@ -233,3 +233,21 @@ def test_blf_eval_scores_the_law_on_a_member_and_refuses_an_agent_of_another_arm
     err = capsys.readouterr().err
     # said before the agent is loaded (and its kernels compiled): one line
     assert "ppo_residual acts on an arm of 3 links, and the groups are of [2]" in err and err.count("\n") == 1
+
+
+@pytest.mark.slow
+def test_the_gain_search_runs_on_a_member_and_scores_the_carried_law_as_the_law(tmp_path):
+    # the same kernel as blf-eval's test above (the proposed law's batch build at 2 links)
+    import json
+
+    from baselines.gains import main
+    from blf_gym.plugins.registry import make_controller
+
+    carried = make_controller("proposed", nominal=family_arm(2)).params.K2[0]
+    assert main(["proposed", "--n-links", "2", "--grid", f"K2={carried!r},{carried / 2!r}", "--episodes", "1",
+                 "--no-progress", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "gains.json").read_text())
+    assert res["n_links"] == 2 and res["episodes"] == ["n2-0.1hz", "n2-0.5hz", "randomized/0"]
+    same = next(r for r in res["rows"] if r["point"]["K2"] == carried)
+    assert same["score_geomean"] == 1.0 and same["effort_ratio"] == 1.0 and same["admissible"]
+    assert "on the task family's 2-link arm" in (tmp_path / "gains.md").read_text()
