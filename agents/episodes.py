@@ -36,13 +36,16 @@ def registered_controllers() -> list[str]:
     return [c for c in available_controllers() if c != "none"]
 
 
-def curve_scenarios(suite_seeds: int, duration: float | None = None,
-                    level: int = DEFAULT_LEVEL) -> list[tuple[str, list[Scenario]]]:
+def curve_scenarios(suite_seeds: int, duration: float | None = None, level: int = DEFAULT_LEVEL,
+                    n_links: int | None = None) -> list[tuple[str, list[Scenario]]]:
     """The scenarios of :data:`CURVE_GROUPS`, labelled by group: the paper presets and
     ``suite_seeds`` held-out episodes of the training suite, ``duration`` seconds each (None: the
-    presets' 30 s), at difficulty ``level`` (an agent's curve is drawn at the level it trains at)."""
-    groups = build_scenarios(list(PRESETS), suite_seeds, {}, duration, level=level)
-    return [(label.split("@L")[0], scs) for label, scs in groups]
+    presets' 30 s), at difficulty ``level`` (an agent's curve is drawn at the level it trains at).
+    On another member of the task family (``n_links``, the agent's) the groups are its own, under
+    the same labels, which name roles (the 0.1 Hz preset, the 0.5 Hz preset, the training suite):
+    the curve file's ``env_kwargs`` say which arm."""
+    groups = build_scenarios(list(PRESETS), suite_seeds, {}, duration, level=level, n_links=n_links)
+    return [(role, scs) for role, (_, scs) in zip(CURVE_GROUPS, groups)]
 
 
 def build_scenarios(

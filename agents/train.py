@@ -150,7 +150,8 @@ def _make_curve_callback(every: int, out: Path, env_kwargs: dict[str, Any], meta
     from .evaluate import agent_episodes, curve_scenarios
 
     path = out / "eval" / "curve.json"
-    groups = curve_scenarios(suite_seeds, env_kwargs.get("duration"), env_kwargs.get("level", DEFAULT_LEVEL))
+    groups = curve_scenarios(suite_seeds, env_kwargs.get("duration"), env_kwargs.get("level", DEFAULT_LEVEL),
+                             env_kwargs.get("n_links"))
 
     class _Curve(BaseCallback):
         def _on_training_start(self) -> None:

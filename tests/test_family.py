@@ -251,3 +251,15 @@ def test_the_gain_search_runs_on_a_member_and_scores_the_carried_law_as_the_law(
     same = next(r for r in res["rows"] if r["point"]["K2"] == carried)
     assert same["score_geomean"] == 1.0 and same["effort_ratio"] == 1.0 and same["admissible"]
     assert "on the task family's 2-link arm" in (tmp_path / "gains.md").read_text()
+
+
+def test_a_member_s_learning_curve_reads_its_own_groups_under_the_roles_names():
+    from agents.episodes import curve_scenarios
+    from blf_gym.envs.protocol import CURVE_GROUPS
+
+    paper = curve_scenarios(2, 1.0)
+    seven = curve_scenarios(2, 1.0, n_links=7)
+    assert [g for g, _ in seven] == [g for g, _ in paper] == list(CURVE_GROUPS)
+    assert [sc.name for _, scs in seven for sc in scs][:2] == ["n7-0.1hz", "n7-0.5hz"]
+    assert all(sc.arm.n_links == 7 for _, scs in seven for sc in scs)
+    assert curve_scenarios(2, 1.0, n_links=3) == paper
