@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Callable
 
+from blf_gym.model.family import FAMILY_LINKS, family_arm
 from blf_gym.model.params import ArmParams, DeadZoneParams, Scenario, check_int
 from blf_gym.envs.scenarios import widen_bounds
 
@@ -47,9 +48,15 @@ def _no_force(sc: Scenario) -> Scenario:
 
 def _nominal(sc: Scenario) -> Scenario:
     """The plant the controllers' nominal model describes: no friction, an identity dead zone (unit
-    slopes, no break points), the paper's masses (payload included), no force, no noise, starting
-    on the reference."""
-    arm = replace(sc.arm, masses=ArmParams().masses) if sc.arm.n_links == len(ArmParams().masses) else sc.arm
+    slopes, no break points), the paper's masses (payload included; on another member of the task
+    family, the member's), no force, no noise, starting on the reference."""
+    n = sc.arm.n_links
+    if n == len(ArmParams().masses):
+        arm = replace(sc.arm, masses=ArmParams().masses)
+    elif n in FAMILY_LINKS and sc.arm.lengths == family_arm(n).lengths:  # a member, its payload drawn
+        arm = replace(sc.arm, masses=family_arm(n).masses)
+    else:
+        arm = sc.arm
     return replace(_no_force(sc), arm=arm, friction=replace(sc.friction, viscous=0.0, coulomb=0.0),
                    dead_zone=DeadZoneParams(slope_right=1.0, slope_left=1.0, break_right=0.0, break_left=0.0),
                    angle_noise_std=0.0, initial_error=(0.0,) * sc.arm.n_links)
