@@ -1026,6 +1026,42 @@ def family_law_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def family_protocol_table() -> str:
+    """The protocol on every member of the task family (docs/family/protocol/results.json, written by
+    ``blf-eval --n-links 2 3 4 5 6 7 --controllers proposed ppc funnel --out docs/family/protocol``):
+    per member and controller, ``score_vs_law`` on the pooled RMSEs of the presets, the training suite's
+    held-out episodes and the stress suite, with the share of episodes that broke a bound or diverged
+    (the law's own in its row)."""
+    recs = _load("family/protocol")["records"]
+
+    def group(scenario: str) -> str:
+        for g in ("randomized", "stress"):
+            if scenario.endswith(g):
+                return g
+        return "presets"
+
+    def n_of(scenario: str) -> int:
+        return int(scenario[1]) if scenario.startswith("n") and scenario[1].isdigit() else 3
+
+    out = ["| n | controller | presets: score (fail) | training suite: score (fail) | stress suite: score (fail) |",
+           "|---|---|---|---|---|"]
+    policies = list(dict.fromkeys(r["policy"] for r in recs))
+    for n in sorted({n_of(r["scenario"]) for r in recs}):
+        for pol in policies:
+            cells = []
+            for g in ("presets", "randomized", "stress"):
+                rs = [r for r in recs if r["policy"] == pol and n_of(r["scenario"]) == n and group(r["scenario"]) == g]
+                if not rs:
+                    cells.append("-")
+                    continue
+                eps = sum(r["episodes"] for r in rs)
+                fail = sum(r["failure_rate"] * r["episodes"] for r in rs) / eps
+                score = " / ".join(f"{r['score_vs_law']:.3f}" for r in rs)
+                cells.append(f"{score} ({fail:.2f} of {eps})")
+            out.append(f"| {n} | {pol} | " + " | ".join(cells) + " |")
+    return "\n".join(out) + "\n"
+
+
 def family_cost_table() -> str:
     """The closed loop's cost per arm-step per member and the fit (docs/speed/links.json, written by
     ``python benchmarks/bench_links.py --json docs/speed/links.json``)."""
