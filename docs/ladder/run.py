@@ -5,8 +5,14 @@ with the audited set-up on every difficulty level, three seeds each, resumable a
     python docs/ladder/run.py --stage sac            # SAC, levels 0 and 3, seeds 0-2, 2M steps each
     python docs/ladder/run.py --stage long           # the best set-up, 20M steps on the full benchmark
     python docs/ladder/run.py --stage bench          # PPO at levels 0 and 1 with the full benchmark's reward
+    python docs/ladder/run.py --stage family_residual  # the tuned residual PPO on the 2- and 7-link arms, 1M steps
+    python docs/ladder/run.py --stage family_plain   # the audited plain PPO on the 2- and 7-link arms, 2M steps
     python docs/ladder/run.py --keep                 # keep every run in docs/ladder/runs (at each commit)
     python docs/ladder/run.py --restore              # bring kept runs back into --out, to resume them
+
+The family stages train on members of the task family (docs/family.md) with the same set-up and
+budget as on the paper's arm: the residual PPO as shipped (its config, 1M agent steps) and the
+plain PPO as on the ladder (2M steps, the full benchmark's level).
 
 Seeds 0, 1 and 2 were fixed before any run; levels and configurations are never chosen on the
 stress suite. A finished run is kept lean (its model, normalisation statistics, metadata and
@@ -39,9 +45,13 @@ class Run(NamedTuple):
     seed: int
     steps: int
     sets: tuple[str, ...] = ()
+    mode: str = "plain"
 
 
 PPO_CONFIG = "agents/configs/ppo_plain_ladder.yaml"
+RESIDUAL_CONFIG = "agents/configs/ppo_PlanarBLFResidual-v0.yaml"
+FAMILY_LINKS = (2, 7)
+"""The members the learners train on: the smallest and the largest of the task family."""
 SAC_CONFIG = "agents/configs/sac_plain_ladder.yaml"
 
 BENCH_REWARD = ("env.reward_weights={tracking: 100.0, torque: 0.01, alive: 1.0, violation: 1500000.0}",)
@@ -57,6 +67,10 @@ STAGES: dict[str, list[Run]] = {
     "sac": [Run(f"sac_L{lv}_s{s}", "sbx_sac", SAC_CONFIG, lv, s, 2_000_000) for s in SEEDS for lv in (0, 3)],
     "long": [Run("ppo_long_L3_s0", "ppo", PPO_CONFIG, 3, 0, 20_000_000)],
     "bench": [Run(f"ppo_bench_L{lv}_s{s}", "ppo", PPO_CONFIG, lv, s, 2_000_000, BENCH_REWARD) for s in SEEDS for lv in (0, 1)],
+    "family_residual": [Run(f"family_ppo_residual_n{n}_s{s}", "ppo", RESIDUAL_CONFIG, 3, s, 1_000_000, (f"env.n_links={n}",),
+                            "residual") for s in SEEDS for n in FAMILY_LINKS],
+    "family_plain": [Run(f"family_ppo_plain_n{n}_s{s}", "ppo", PPO_CONFIG, 3, s, 2_000_000, (f"env.n_links={n}",))
+                     for s in SEEDS for n in FAMILY_LINKS],
 }
 """Every ladder run, by stage: its folder name, algorithm, config, level, seed and agent steps."""
 
@@ -75,7 +89,7 @@ def _train(r: Run, out: Path) -> str:
     run = out / r.name
     if _complete(run, r.steps):
         return f"{r.name}: finished already"
-    cmd = ["nice", "-n", "5", sys.executable, "-m", "agents.train", "--algo", r.algo, "--mode", "plain",
+    cmd = ["nice", "-n", "5", sys.executable, "-m", "agents.train", "--algo", r.algo, "--mode", r.mode,
            "--scenario", "randomized", "--seed", str(r.seed), "--config", r.config, "--timesteps", str(r.steps),
            "--out", str(run), "--name", r.name, "--no-progress"]
     if _meta(run) is not None or (run / "checkpoints").is_dir():
