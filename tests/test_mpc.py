@@ -61,6 +61,23 @@ def test_the_casadi_model_is_the_kernels_nominal_arm():
             np.testing.assert_allclose(got[3:], want, rtol=1e-9, atol=1e-9)
 
 
+@pytest.mark.parametrize("n", [2, 5, 7])
+def test_the_casadi_model_is_the_kernels_on_every_member_of_the_task_family(n):
+    # the second model cross-checked against the package's dynamics on the task family's arms
+    # (blf_gym.model.family), whose mass matrix tests/test_dynamics.py checks against Pinocchio
+    from blf_gym.model.family import family_arm
+
+    arm = family_arm(n)
+    f = casadi_dynamics(arm)
+    rng = np.random.default_rng(n)
+    for _ in range(10):
+        q, qd, u, d = rng.uniform(-3, 3, n), rng.uniform(-5, 5, n), rng.uniform(-50, 50, n), rng.uniform(-9, 9, n)
+        want = np.linalg.solve(mass_matrix(q, arm), u - coriolis_matrix(q, qd, arm) @ qd - gravity(q, arm)) + d
+        got = np.asarray(f(np.concatenate([q, qd]), u, d)).ravel()
+        np.testing.assert_allclose(got[:n], qd, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(got[n:], want, rtol=1e-9, atol=1e-9)
+
+
 def _nominal(freq: float = 0.5, wide: bool = True, duration: float = 2.0):
     """The paper preset without friction, dead-zone or force: the arm as the model has it."""
     sc = preset("paper-0.5hz" if freq == 0.5 else "paper-0.1hz")
