@@ -1391,7 +1391,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
     "docs/levels.md": {"levels": levels_table, "floor": floor_table},
     "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table,
-                       "family-cost": family_cost_table},
+                       "family-cost": family_cost_table, "family-protocol": family_protocol_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},
