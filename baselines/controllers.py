@@ -78,8 +78,11 @@ def controller_gains(kwargs: dict[str, Any], defaults: dict[str, Any] | None = N
     base = {"K1": ControllerGains.K1, "K2": ControllerGains.K2, **(defaults or {})}
     nominal = kwargs.get("nominal")
     if isinstance(nominal, ArmParams) and nominal.n_links != PAPER_LINKS:
-        base = {**base, "K1": by_position(np.broadcast_to(base["K1"], (PAPER_LINKS,)), nominal.n_links),
-                "K2": velocity_gain(np.broadcast_to(base["K2"], (PAPER_LINKS,)), nominal)}
+        # a default for the paper's 3 joints is carried; one already for this arm is kept
+        if np.size(base["K1"]) == PAPER_LINKS:
+            base["K1"] = by_position(np.broadcast_to(base["K1"], (PAPER_LINKS,)), nominal.n_links)
+        if np.size(base["K2"]) == PAPER_LINKS:
+            base["K2"] = velocity_gain(np.broadcast_to(base["K2"], (PAPER_LINKS,)), nominal)
     return params_from(ControllerGains, {**base, **kwargs}, "controller gain")
 
 

@@ -33,10 +33,11 @@ from numba import njit
 
 from blf_gym.plugins.blocks import Controller, coriolis_times
 from blf_gym.model.bounds import log_rate
+from blf_gym.model.family import family_arm
 
 from .controllers import controller_gains
 
-__all__ = ["ppc", "ppc_output", "PPC_GAINS"]
+__all__ = ["ppc", "ppc_output", "PPC_GAINS", "PPC_MEMBER_GAINS"]
 
 PPC_GAINS: dict[str, Any] = {"K1": (1280.0, 1280.0, 960.0), "K2": (11.25, 11.25, 3.75)}  # paper: its 3-link arm
 """The PPC's gains where they differ from :class:`baselines.controllers.ControllerGains`' defaults
@@ -90,9 +91,36 @@ def ppc_output(y, x2_hat, x3_hat, q_d, qd_d, qdd_d, k_a, k_a_dot, k_a_ddot, k_b,
         u_law[i] = -K2[i] * e2 + ca[i] + nominal[nn + i] + acc - reps[i]
 
 
+PPC_MEMBER_GAINS: dict[int, dict[str, float]] = {  # chosen by the searches named below
+    2: {"K1": 640.0, "K2": 12.390671665762405},
+    4: {"K1": 1280.0, "K2": 26.942644011767488},
+    5: {"K1": 1280.0, "K2": 22.128259433048658},
+    6: {"K1": 2560.0, "K2": 20.503601833576987},
+    7: {"K1": 1280.0, "K2": 19.092879177475517}}
+"""PPC's gains on the task family's other members (docs/family.md, "Gains"), chosen per member by the
+same search as on the paper's arm (``python -m baselines.gains ppc --n-links N``, the same 40-point
+grid carried: K1 over the same eight values, K2 the law's carried first gain times 1/8 to 2, on the
+member's presets and training-suite seeds 0-7 only, under the same torque budget;
+docs/gains/family/ppc_n<N>). Each is the first entry of a vector of the carried shape: the vectors
+the rule carries to the member, scaled to it."""
+
+
+def _member_defaults(nominal: Any) -> dict[str, Any]:
+    """PPC's defaults for ``nominal``: the chosen gains of :data:`PPC_MEMBER_GAINS` on a member of
+    the task family (its own arm), else the paper arm's (:data:`PPC_GAINS`), carried by
+    :func:`baselines.controllers.controller_gains`."""
+    n = getattr(nominal, "n_links", None)
+    if n not in PPC_MEMBER_GAINS or nominal != family_arm(n):
+        return PPC_GAINS
+    carried = controller_gains({"nominal": nominal}, PPC_GAINS)
+    return {k: tuple(v * x / getattr(carried, k)[0] for x in getattr(carried, k))
+            for k, v in PPC_MEMBER_GAINS[n].items()}
+
+
 def ppc(**kwargs: Any) -> Controller:
     """Prescribed-performance control with the LESO's velocity and disturbance estimates; keyword
     arguments override :class:`baselines.controllers.ControllerGains` (K1 is the transformed
-    error's rate, 1/s)."""
-    return Controller("ppc", ppc_output, controller_gains(kwargs, PPC_GAINS),
+    error's rate, 1/s). On a member of the task family its gains are the member's
+    (:data:`PPC_MEMBER_GAINS`)."""
+    return Controller("ppc", ppc_output, controller_gains(kwargs, _member_defaults(kwargs.get("nominal"))),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "epsilon": "n"})

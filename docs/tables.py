@@ -1062,6 +1062,37 @@ def family_protocol_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def family_ppc_gains_table() -> str:
+    """PPC's gain search on each member of the task family (docs/gains/family/ppc_n<N>/gains.json,
+    ``python -m baselines.gains ppc --n-links N``): the carried gains' point and the chosen one, with
+    their scores and efforts on the member's selection episodes."""
+    import json
+
+    out = ["| n | carried K1, K2 (first joint) | carried: score (effort), failed on | chosen K1, K2 | chosen: score (effort) |",
+           "|---|---|---|---|---|"]
+    for path in sorted((DOCS / "gains" / "family").glob("ppc_n*/gains.json"), key=lambda p: int(p.parent.name[5:])):
+        d = json.loads(path.read_text())
+        n = d["n_links"]
+        rows = d["rows"]
+        rule = next((r for r in rows if r["point"]["K1"] == 1280.0
+                     and abs(r["point"]["K2"] - _carried_ppc_k2(n)) < 1e-9 * _carried_ppc_k2(n)), None)
+        chosen = rows[0] if d["chosen"] else None
+        rtxt = "not on the grid" if rule is None else (f"{rule['score_geomean']:.3f} ({rule['effort_ratio']:.2f}), "
+                                                       f"{', '.join(rule['failed_on']) or 'none'}")
+        out.append(f"| {n} | 1280, {_carried_ppc_k2(n):.4g} | {rtxt} | "
+                   + (f"{chosen['point']['K1']:g}, {chosen['point']['K2']:.4g} | {chosen['score_geomean']:.3f} "
+                      f"({chosen['effort_ratio']:.2f}) |" if chosen else "none | - |"))
+    return "\n".join(out) + "\n"
+
+
+def _carried_ppc_k2(n: int) -> float:
+    """The first entry of PPC's K2 carried to the member of ``n`` links by the rule alone."""
+    from baselines.params import velocity_gain
+    from blf_gym.model.family import family_arm
+
+    return velocity_gain((11.25, 11.25, 3.75), family_arm(n))[0]
+
+
 def family_cost_table() -> str:
     """The closed loop's cost per arm-step per member and the fit (docs/speed/links.json, written by
     ``python benchmarks/bench_links.py --json docs/speed/links.json``)."""
@@ -1391,7 +1422,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
                                                                     ("proposed", "sbx_sac", "sbx_crossq"))},
     "docs/levels.md": {"levels": levels_table, "floor": floor_table},
     "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table,
-                       "family-cost": family_cost_table, "family-protocol": family_protocol_table},
+                       "family-cost": family_cost_table, "family-protocol": family_protocol_table,
+                       "family-ppc-gains": family_ppc_gains_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},

@@ -263,3 +263,27 @@ def test_a_member_s_learning_curve_reads_its_own_groups_under_the_roles_names():
     assert [sc.name for _, scs in seven for sc in scs][:2] == ["n7-0.1hz", "n7-0.5hz"]
     assert all(sc.arm.n_links == 7 for _, scs in seven for sc in scs)
     assert curve_scenarios(2, 1.0, n_links=3) == paper
+
+
+@pytest.mark.parametrize("n", [m for m in FAMILY_LINKS if m != 3])
+def test_ppc_s_member_gains_are_the_search_s_choice_on_that_member(n):
+    # baselines.ppc.PPC_MEMBER_GAINS holds what python -m baselines.gains ppc --n-links N chose
+    # (docs/gains/family/ppc_n<N>/gains.json), in the carried vectors' shape; another arm of n links
+    # keeps the rule's carried gains
+    import json
+    from pathlib import Path
+
+    from baselines.ppc import PPC_MEMBER_GAINS
+    from blf_gym.plugins.registry import make_controller
+
+    chosen = json.loads((Path(__file__).resolve().parents[1] / "docs" / "gains" / "family" / f"ppc_n{n}"
+                         / "gains.json").read_text())["chosen"]
+    assert PPC_MEMBER_GAINS[n] == chosen
+    p = make_controller("ppc", nominal=family_arm(n)).params
+    other = ArmParams(lengths=(0.8 / n,) * n, masses=(0.53 / n,) * n)
+    carried = make_controller("proposed", nominal=family_arm(n)).params  # the same shapes as PPC's carried
+    for k in ("K1", "K2"):
+        assert getattr(p, k)[0] == pytest.approx(chosen[k], rel=1e-12)
+        np.testing.assert_allclose(np.asarray(getattr(p, k)) / getattr(p, k)[0],
+                                   np.asarray(getattr(carried, k)) / getattr(carried, k)[0], rtol=1e-12)
+    assert make_controller("ppc", nominal=other).params.K1[0] == 1280.0  # the rule's, not the member's
