@@ -14,7 +14,7 @@ import numpy as np
 from blf_gym.results.metrics import METRIC_CHANNELS, EpisodeStats, episode_stats
 from blf_gym.envs.levels import DEFAULT_LEVEL, apply_level, check_level
 from blf_gym.envs.envcore import named_block
-from blf_gym.model.family import PAPER_LINKS, check_n_links, family_arm, family_preset, family_presets
+from blf_gym.model.family import PAPER_LINKS, check_n_links, family_preset, family_presets, member_arm
 from blf_gym.model.params import PRESETS, Scenario, preset
 from blf_gym.envs.protocol import (CURVE_GROUPS, EVAL_SEED_OFFSET, PROTOCOL_SEEDS, REFERENCE, SUITES,  # noqa: F401 (re-exported)
                                    suite_seed_offset)
@@ -118,14 +118,14 @@ but not for a batch of one row, so no batch is left with a single episode of a l
 
 
 def member_blocks(name: Any, observer: Any, scenarios: Sequence[Scenario]) -> tuple[Any, Any]:
-    """The controller and observer for episodes of one member of the task family: the names as
-    they are on the paper's 3 links; on another arm, built with the member's arm as their model
-    and their gains carried to it (blf_gym.envs.envcore.named_block), or one ValueError naming the
-    block that cannot serve it."""
+    """The controller and observer for episodes of one arm: the names as they are on the paper's 3
+    links; on another arm, built with it as their model (the task family's member it is a draw of,
+    else the scenario's own arm) and their gains carried to it (blf_gym.envs.envcore.named_block),
+    or one ValueError naming the block that cannot serve it."""
     n = scenarios[0].arm.n_links if scenarios else PAPER_LINKS
     if n == PAPER_LINKS:
         return name, observer
-    arm = family_arm(n)
+    arm = member_arm(scenarios[0].arm) or scenarios[0].arm
     return (named_block("blf-eval:", "controller", name, arm), named_block("blf-eval:", "observer", observer, arm))
 
 

@@ -287,3 +287,17 @@ def test_ppc_s_member_gains_are_the_search_s_choice_on_that_member(n):
         np.testing.assert_allclose(np.asarray(getattr(p, k)) / getattr(p, k)[0],
                                    np.asarray(getattr(carried, k)) / getattr(carried, k)[0], rtol=1e-12)
     assert make_controller("ppc", nominal=other).params.K1[0] == 1280.0  # the rule's, not the member's
+
+
+def test_a_member_s_draws_are_known_as_the_member_and_level_0_puts_back_its_masses():
+    from blf_gym.envs.levels import apply_level
+    from blf_gym.envs.scenarios import sample_suite
+    from blf_gym.model.family import member_arm
+    from blf_gym.model.params import joint_scenario
+
+    drawn = [sample_suite(np.random.default_rng(k), family_base(4), "randomized") for k in range(5)]
+    assert any(sc.arm.masses != family_arm(4).masses for sc in drawn)  # the payload knob moved the last mass
+    assert all(member_arm(sc.arm) == family_arm(4) for sc in drawn)
+    assert all(apply_level(sc, 0).arm.masses == family_arm(4).masses for sc in drawn)
+    assert member_arm(joint_scenario(4).arm) is None  # another arm of 4 links is no member
+    assert apply_level(joint_scenario(4), 0).arm == joint_scenario(4).arm

@@ -25,7 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from typing import Callable
 
-from blf_gym.model.family import FAMILY_LINKS, family_arm
+from blf_gym.model.family import member_arm
 from blf_gym.model.params import ArmParams, DeadZoneParams, Scenario, check_int
 from blf_gym.envs.scenarios import widen_bounds
 
@@ -50,11 +50,11 @@ def _nominal(sc: Scenario) -> Scenario:
     """The plant the controllers' nominal model describes: no friction, an identity dead zone (unit
     slopes, no break points), the paper's masses (payload included; on another member of the task
     family, the member's), no force, no noise, starting on the reference."""
-    n = sc.arm.n_links
-    if n == len(ArmParams().masses):
+    member = member_arm(sc.arm)
+    if sc.arm.n_links == len(ArmParams().masses):
         arm = replace(sc.arm, masses=ArmParams().masses)
-    elif n in FAMILY_LINKS and sc.arm.lengths == family_arm(n).lengths:  # a member, its payload drawn
-        arm = replace(sc.arm, masses=family_arm(n).masses)
+    elif member is not None:  # a member of the task family, its payload drawn
+        arm = replace(sc.arm, masses=member.masses)
     else:
         arm = sc.arm
     return replace(_no_force(sc), arm=arm, friction=replace(sc.friction, viscous=0.0, coulomb=0.0),

@@ -44,7 +44,7 @@ import numpy as np
 from blf_gym.model.params import PRESETS, ArmParams, ReferenceParams, Scenario, SimParams, check_int, preset
 
 __all__ = ["PAPER_LINKS", "FAMILY_LINKS", "MODULE_LENGTH", "MODULE_MASS", "FAMILY_AMPLITUDE", "FAMILY_FREQUENCIES", "family_arm", "family_reference",
-           "family_preset", "family_presets", "family_base", "preset_links", "check_n_links", "family_table"]
+           "family_preset", "family_presets", "family_base", "preset_links", "member_arm", "check_n_links", "family_table"]
 
 FAMILY_LINKS = (2, 3, 4, 5, 6, 7)
 """The family's numbers of links: the 2-link arm of most barrier-Lyapunov papers up to the 7 joints
@@ -81,6 +81,16 @@ def family_arm(n: int) -> ArmParams:
     if n == _PAPER.n_links:
         return _PAPER
     return ArmParams(lengths=(MODULE_LENGTH,) * n, masses=(MODULE_MASS,) * n, gravity=_PAPER.gravity)
+
+
+def member_arm(arm: ArmParams) -> ArmParams | None:
+    """The family's arm that ``arm`` is a draw of (the same number of links and link lengths; its
+    masses may carry a payload), or None for an arm outside the family."""
+    n = arm.n_links
+    if n not in FAMILY_LINKS:
+        return None
+    own = family_arm(n)
+    return own if arm.lengths == own.lengths else None
 
 
 def family_reference(n: int, frequency: float = 0.1) -> ReferenceParams:
