@@ -22,17 +22,17 @@ from pathlib import Path
 import numpy as np
 
 from blf_gym.kernel.simulate import ClosedLoop
-from blf_gym.model.family import FAMILY_LINKS, PAPER_LINKS, family_arm, family_preset, family_presets
-from blf_gym.plugins.registry import make_controller, make_observer
+from blf_gym.model.family import FAMILY_LINKS, family_arm, family_preset, family_presets
+from blf_gym.envs.envcore import named_block
 from blf_gym.results.io import atomic_write_text
 from blf_gym.results.metrics import provenance
 
 
 def per_step(n: int, steps: int, repeats: int) -> float:
     """The n-link member's minimum wall time per arm-step, s."""
-    nominal = {} if n == PAPER_LINKS else {"nominal": family_arm(n)}
-    loop = ClosedLoop([family_preset(family_presets(n)[0])], make_controller("proposed", **nominal),
-                      make_observer("leso", **nominal), threads=1, lanes=1)
+    arm = family_arm(n)
+    loop = ClosedLoop([family_preset(family_presets(n)[0])], named_block("bench_links:", "controller", "proposed", arm),
+                      named_block("bench_links:", "observer", "leso", arm), threads=1, lanes=1)
     best = np.inf
     for _ in range(repeats):
         t = time.perf_counter()

@@ -987,7 +987,7 @@ def family_members_table() -> str:
     from baselines.params import fastest_pole
     from blf_gym.model.dynamics import mass_matrix
     from blf_gym.model.family import family_arm, family_presets, family_table
-    from blf_gym.plugins.registry import make_controller
+    from blf_gym.envs.envcore import named_block
 
     out = ["| n | links (m) | masses (kg) | reach (m) | gravity at the base (N m) | 40 N force at the base (N m) | "
            "lightest mode (kg m^2) | presets |", "|---|---|---|---|---|---|---|---|"]
@@ -1003,7 +1003,7 @@ def family_members_table() -> str:
     out += ["", "| n | K1 (1/s) | K2 (N m s/rad) | fastest velocity pole (1/s) |", "|---|---|---|---|"]
     for n in (2, 3, 4, 5, 6, 7):
         arm = family_arm(n)
-        g = make_controller("proposed", **({} if n == 3 else {"nominal": arm})).params
+        g = named_block("tables:", "controller", "proposed", arm).params
         out.append(f"| {n} | {', '.join(f'{x:.4g}' for x in g.K1)} | {', '.join(f'{x:.4g}' for x in g.K2)} | "
                    f"{fastest_pole(g.K2, arm):.4g} |")
     return "\n".join(out) + "\n"

@@ -36,12 +36,11 @@ base).
 from __future__ import annotations
 
 import math
-from dataclasses import fields, replace
 from typing import Any
 
 import numpy as np
 
-from blf_gym.model.params import PRESETS, ArmParams, ReferenceParams, Scenario, SimParams, check_int, preset
+from blf_gym.model.params import PRESETS, ArmParams, ReferenceParams, Scenario, check_int, preset, with_sim
 
 __all__ = ["PAPER_LINKS", "FAMILY_LINKS", "MODULE_LENGTH", "MODULE_MASS", "FAMILY_AMPLITUDE", "FAMILY_FREQUENCIES", "family_arm", "family_reference",
            "family_preset", "family_presets", "family_base", "preset_links", "member_arm", "check_n_links", "family_table"]
@@ -132,15 +131,7 @@ def family_preset(name: str, **sim_overrides: Any) -> Scenario:
         return preset(name, **sim_overrides)
     frequency = FAMILY_FREQUENCIES[family_presets(n).index(name)]
     base = Scenario(name=name, arm=family_arm(n), reference=family_reference(n, frequency))
-    return _with_sim(base, sim_overrides)
-
-
-def _with_sim(sc: Scenario, sim_overrides: dict[str, Any]) -> Scenario:
-    unknown = sorted(set(sim_overrides) - {f.name for f in fields(SimParams)})
-    if unknown:
-        raise ValueError(f"family_preset: unknown SimParams field(s) {unknown}; accepted: "
-                         f"{[f.name for f in fields(SimParams)]}")
-    return replace(sc, sim=replace(sc.sim, **sim_overrides)) if sim_overrides else sc
+    return with_sim("family_preset", base, sim_overrides)
 
 
 def family_base(n: int) -> Scenario:

@@ -35,6 +35,7 @@ __all__ = [
     "PRESETS",
     "preset",
     "joint_scenario",
+    "with_sim",
     "REFERENCE_PACK",
     "REFERENCE_JOINT_PACK",
     "REFERENCE_KINDS",
@@ -631,18 +632,21 @@ PRESETS: dict[str, Scenario] = {
 """The paper's two simulation cases (Section 4.2.1 and 4.2.2)."""
 
 
+def with_sim(owner: str, sc: Scenario, sim_overrides: dict[str, Any]) -> Scenario:
+    """``sc`` with :class:`SimParams` fields replaced, unknown names refused by name (``owner``
+    says whose argument they were)."""
+    unknown = sorted(set(sim_overrides) - {f.name for f in fields(SimParams)})
+    if unknown:
+        raise ValueError(f"{owner}: unknown SimParams field(s) {unknown}; accepted: "
+                         f"{[f.name for f in fields(SimParams)]}")
+    return replace(sc, sim=replace(sc.sim, **sim_overrides)) if sim_overrides else sc
+
+
 def preset(name: str, **sim_overrides: Any) -> Scenario:
     """The named paper preset, optionally with :class:`SimParams` fields replaced (e.g. ``dt``)."""
     if not (isinstance(name, str) and name in PRESETS):
         raise ValueError(f"unknown preset {name!r}; accepted values: {sorted(PRESETS)}")
-    sc = PRESETS[name]
-    unknown = sorted(set(sim_overrides) - {f.name for f in fields(SimParams)})
-    if unknown:
-        raise ValueError(f"preset: unknown SimParams field(s) {unknown}; accepted: "
-                         f"{[f.name for f in fields(SimParams)]}")
-    if sim_overrides:
-        sc = replace(sc, sim=replace(sc.sim, **sim_overrides))
-    return sc
+    return with_sim("preset", PRESETS[name], sim_overrides)
 
 
 def joint_scenario(n: int, frequency: float = 0.1, amplitude: float = 0.5, name: str | None = None,

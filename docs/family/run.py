@@ -18,8 +18,8 @@ import numpy as np
 
 from blf_gym.envs.scenarios import sample_suite
 from blf_gym.kernel.simulate import simulate_batch
-from blf_gym.model.family import FAMILY_LINKS, PAPER_LINKS, family_arm, family_base, family_preset, family_presets
-from blf_gym.plugins.registry import make_controller, make_observer
+from blf_gym.model.family import FAMILY_LINKS, family_arm, family_base, family_preset, family_presets
+from blf_gym.envs.envcore import named_block
 from blf_gym.results.io import atomic_write_text
 from blf_gym.results.metrics import episode_stats, provenance
 
@@ -30,8 +30,8 @@ DRAWS = 8
 def member(n: int) -> list[dict]:
     """One record per episode of the n-link member: scenario, RMSE per joint (deg), the largest
     |u| per joint (N m), violating 1 ms samples, divergence."""
-    nominal = {} if n == PAPER_LINKS else {"nominal": family_arm(n)}
-    law, obs = make_controller("proposed", **nominal), make_observer("leso", **nominal)
+    arm = family_arm(n)
+    law, obs = named_block("run.py:", "controller", "proposed", arm), named_block("run.py:", "observer", "leso", arm)
     scs = [family_preset(p) for p in family_presets(n)]
     scs += [sample_suite(np.random.default_rng(k), family_base(n), "randomized") for k in range(DRAWS)]
     labels = list(family_presets(n)) + [f"randomized/{k}" for k in range(DRAWS)]
