@@ -1,6 +1,7 @@
 """Test-run settings shared by tests/ and notebooks/ (collected by nbmake)."""
 
 import os
+from pathlib import Path
 
 # The notebooks run in quick mode under pytest (short episodes, a few hundred training steps);
 # opened by hand they run in full.
@@ -45,6 +46,20 @@ def pytest_unconfigure(config):
         import shutil
 
         shutil.rmtree(_OWN_CACHE, ignore_errors=True)
+
+
+def pytest_terminal_summary(terminalreporter, exitstatus, config):
+    """List the closed-loop builds this run compiled (one line per build, from the run's own kernel
+    cache): each costs about a minute of one core, most of the suite's time on a cold cache, so the
+    list is where a shorter suite starts (fewer distinct laws, observers, filters, n and widths)."""
+    if _OWN_CACHE is None or hasattr(config, "workerinput"):
+        return
+    builds = sorted({p.name.split(".")[0].rsplit("__", 1)[0]
+                     for p in Path(_OWN_CACHE).glob("kernels/*/__pycache__/advance*.nbi")})
+    if builds:
+        terminalreporter.write_sep("-", f"{len(builds)} closed-loop builds compiled by this run")
+        for b in builds:
+            terminalreporter.write_line(b)
 
 
 def pytest_report_header(config):

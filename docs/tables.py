@@ -1062,6 +1062,37 @@ def family_protocol_table() -> str:
     return "\n".join(out) + "\n"
 
 
+def family_headline_table() -> str:
+    """The headline's block per member of the task family (docs/family/score.json, written by
+    ``python docs/family/score.py`` from the protocol and learner runs on the members): rliable's IQM
+    of the per-episode score against the law with its 95 % interval, on the training suite's held-out
+    episodes and on the stress suite, and the share of episodes failed, for PPC, the best residual
+    learner and the best plain learner (each the best of its kind by its training-suite IQM, never by
+    the stress suite), with the law's own failure shares."""
+    rows = _load("family", "score.json")["rows"]
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "not trained yet"
+        seeds = len(r["seeds"]) if r["seeds"] and r["seeds"][0] is not None else 0
+        who = "" if r["kind"] == "baseline" else f"{r['policy']}, {seeds} seed{'s' if seeds != 1 else ''}: "
+        return f"{who}{r['iqm']:.3g} [{r['ci95'][0]:.3g}, {r['ci95'][1]:.3g}] ({r['failure_rate']:.2f})"
+
+    out = ["| n | group | the law: failed | PPC | best residual learner | best plain learner |", "|---|---|---|---|---|---|"]
+    for n in sorted({r["n"] for r in rows}):
+        best = {}
+        for kind in ("residual", "plain"):
+            train = [r for r in rows if r["n"] == n and r["kind"] == kind and r["group"] == "randomized"]
+            best[kind] = max(train, key=lambda r: r["iqm"])["policy"] if train else None
+        for group, label in (("randomized", "training suite"), ("stress", "stress suite")):
+            at = {r["policy"]: r for r in rows if r["n"] == n and r["group"] == group}
+            law = at.get("proposed")
+            law_failed = "-" if law is None else f"{law['failure_rate']:.2f}"
+            out.append(f"| {n} | {label} | {law_failed} | "
+                       f"{cell(at.get('ppc'))} | {cell(at.get(best['residual']))} | {cell(at.get(best['plain']))} |")
+    return "\n".join(out) + "\n"
+
+
 def family_ppc_gains_table() -> str:
     """PPC's gain search on each member of the task family (docs/gains/family/ppc_n<N>/gains.json,
     ``python -m baselines.gains ppc --n-links N``): the carried gains' point and the chosen one, with
@@ -1389,6 +1420,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/reproduction.md": {"reproduction": reproduction_table},
     "docs/results.md": {
         "headline": lambda: headline_table(here="results.md"),
+        "family-headline": family_headline_table,
         "verdict": verdict_table,
         "protocol": protocol_table,
         "seed-statistics": lambda: statistics_table("", ("proposed", "ppo_residual", "bc", "lesobc"),
@@ -1423,7 +1455,8 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/levels.md": {"levels": levels_table, "floor": floor_table},
     "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table,
                        "family-cost": family_cost_table, "family-protocol": family_protocol_table,
-                       "family-ppc-gains": family_ppc_gains_table},
+                       "family-ppc-gains": family_ppc_gains_table,
+                       "family-headline": family_headline_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
     "docs/lagrangian.md": {"hyperparameters": lagrangian_hyperparameters_table},
