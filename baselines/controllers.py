@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 
 from blf_gym.plugins.blocks import Controller, Observer
+from blf_gym.model.family import family_arm
 from blf_gym.model.params import ArmParams
 
 from .cbf import cbf_filter
@@ -25,8 +26,8 @@ from .laws import bc_output, lesobc_output, proposed_output
 from .leso import leso_rhs
 from .params import PAPER_LINKS, by_position, velocity_gain, params_from, positive_vector
 
-__all__ = ["ControllerGains", "ObserverGains", "PROPOSED_TUNED", "controller_gains", "bc", "lesobc", "proposed",
-           "proposed_tuned", "leso"]
+__all__ = ["ControllerGains", "ObserverGains", "PROPOSED_TUNED", "PROPOSED_TUNED_MEMBER_GAINS", "controller_gains",
+           "member_defaults", "bc", "lesobc", "proposed", "proposed_tuned", "leso"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +87,19 @@ def controller_gains(kwargs: dict[str, Any], defaults: dict[str, Any] | None = N
     return params_from(ControllerGains, {**base, **kwargs}, "controller gain")
 
 
+def member_defaults(nominal: Any, chosen: dict[int, dict[str, float]], defaults: dict[str, Any]) -> dict[str, Any]:
+    """A law's defaults on ``nominal``: on a member of the task family (its own arm, of n links) whose
+    gains a search chose (``chosen[n]``, each gain the first entry of its vector, as
+    ``python -m baselines.gains LAW --n-links N`` states it), the vectors :func:`controller_gains`
+    carries to that arm scaled to those first entries; on any other arm ``defaults`` (the paper arm's),
+    which :func:`controller_gains` carries by the rule."""
+    n = getattr(nominal, "n_links", None)
+    if n not in chosen or nominal != family_arm(n):
+        return defaults
+    carried = controller_gains({"nominal": nominal}, defaults)
+    return {k: tuple(v * x / getattr(carried, k)[0] for x in getattr(carried, k)) for k, v in chosen[n].items()}
+
+
 _LESO_STATES = {"x1_hat": "n", "x2_hat": "n", "x3_hat": "n"}
 """The LESO's states: estimated angles (rad), velocities (rad/s) and lumped disturbance (rad/s^2)."""
 
@@ -117,10 +131,20 @@ on the paper's 3-link arm; on an arm of another number of links they are carried
 docs/family.md's rule unless K1 and K2 are given."""
 
 
+PROPOSED_TUNED_MEMBER_GAINS: dict[int, dict[str, float]] = {}
+"""The tuned law's gains on the task family's other members (docs/family.md, "Gains"), chosen per
+member by the search that chose :data:`PROPOSED_TUNED` (``docs/gains/family/run.sh proposed``: the
+same 40-point grid carried, on the member's presets and training-suite seeds 0-7 only, under the same
+torque budget; docs/gains/family/proposed_n<N>), each the first entry of a vector of the carried
+shape. A member without an entry takes :data:`PROPOSED_TUNED` carried by the rule."""
+
+
 def proposed_tuned(**kwargs: Any) -> Controller:
-    """The paper's law with tuned gains (:data:`PROPOSED_TUNED`); everything else, the barrier and
-    its filters included, is the proposed law's."""
-    return Controller("proposed_tuned", proposed_output, controller_gains(kwargs, PROPOSED_TUNED),
+    """The paper's law with tuned gains (:data:`PROPOSED_TUNED`, and on a member of the task family
+    :data:`PROPOSED_TUNED_MEMBER_GAINS`); everything else, the barrier and its filters included, is
+    the proposed law's."""
+    defaults = member_defaults(kwargs.get("nominal"), PROPOSED_TUNED_MEMBER_GAINS, PROPOSED_TUNED)
+    return Controller("proposed_tuned", proposed_output, controller_gains(kwargs, defaults),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "barrier": "n"},
                       filters={"barrier": barrier_filter, "cbf": cbf_filter})
 

@@ -33,9 +33,8 @@ from numba import njit
 
 from blf_gym.plugins.blocks import Controller, coriolis_times
 from blf_gym.model.bounds import log_rate
-from blf_gym.model.family import family_arm
 
-from .controllers import controller_gains
+from .controllers import controller_gains, member_defaults
 
 __all__ = ["ppc", "ppc_output", "PPC_GAINS", "PPC_MEMBER_GAINS"]
 
@@ -105,22 +104,10 @@ docs/gains/family/ppc_n<N>). Each is the first entry of a vector of the carried 
 the rule carries to the member, scaled to it."""
 
 
-def _member_defaults(nominal: Any) -> dict[str, Any]:
-    """PPC's defaults for ``nominal``: the chosen gains of :data:`PPC_MEMBER_GAINS` on a member of
-    the task family (its own arm), else the paper arm's (:data:`PPC_GAINS`), carried by
-    :func:`baselines.controllers.controller_gains`."""
-    n = getattr(nominal, "n_links", None)
-    if n not in PPC_MEMBER_GAINS or nominal != family_arm(n):
-        return PPC_GAINS
-    carried = controller_gains({"nominal": nominal}, PPC_GAINS)
-    return {k: tuple(v * x / getattr(carried, k)[0] for x in getattr(carried, k))
-            for k, v in PPC_MEMBER_GAINS[n].items()}
-
-
 def ppc(**kwargs: Any) -> Controller:
     """Prescribed-performance control with the LESO's velocity and disturbance estimates; keyword
     arguments override :class:`baselines.controllers.ControllerGains` (K1 is the transformed
     error's rate, 1/s). On a member of the task family its gains are the member's
     (:data:`PPC_MEMBER_GAINS`)."""
-    return Controller("ppc", ppc_output, controller_gains(kwargs, _member_defaults(kwargs.get("nominal"))),
+    return Controller("ppc", ppc_output, controller_gains(kwargs, member_defaults(kwargs.get("nominal"), PPC_MEMBER_GAINS, PPC_GAINS)),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "epsilon": "n"})

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import math
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -265,28 +267,31 @@ def test_a_member_s_learning_curve_reads_its_own_groups_under_the_roles_names():
     assert curve_scenarios(2, 1.0, n_links=3) == paper
 
 
-@pytest.mark.parametrize("n", [m for m in FAMILY_LINKS if m != 3])
-def test_ppc_s_member_gains_are_the_search_s_choice_on_that_member(n):
-    # baselines.ppc.PPC_MEMBER_GAINS holds what python -m baselines.gains ppc --n-links N chose
-    # (docs/gains/family/ppc_n<N>/gains.json), in the carried vectors' shape; another arm of n links
-    # keeps the rule's carried gains
-    import json
-    from pathlib import Path
+_SEARCHED = Path(__file__).resolve().parents[1] / "docs" / "gains" / "family"
 
+
+@pytest.mark.parametrize("law,n", [(law, m) for law in ("ppc", "proposed_tuned") for m in FAMILY_LINKS if m != 3
+                                   and (_SEARCHED / f"{law.split('_')[0]}_n{m}" / "gains.json").is_file()])
+def test_a_law_s_member_gains_are_the_search_s_choice_on_that_member(law, n):
+    # baselines.ppc.PPC_MEMBER_GAINS (and baselines.controllers.PROPOSED_TUNED_MEMBER_GAINS) hold what
+    # python -m baselines.gains ppc (proposed) --n-links N chose (docs/gains/family/<law>_n<N>/gains.json),
+    # in the carried vectors' shape; another arm of n links keeps the rule's carried gains
+    import json
+
+    from baselines.controllers import PROPOSED_TUNED_MEMBER_GAINS
     from baselines.ppc import PPC_MEMBER_GAINS
     from blf_gym.plugins.registry import make_controller
 
-    chosen = json.loads((Path(__file__).resolve().parents[1] / "docs" / "gains" / "family" / f"ppc_n{n}"
-                         / "gains.json").read_text())["chosen"]
-    assert PPC_MEMBER_GAINS[n] == chosen
-    p = make_controller("ppc", nominal=family_arm(n)).params
+    chosen = json.loads((_SEARCHED / f"{law.split('_')[0]}_n{n}" / "gains.json").read_text())["chosen"]
+    assert {"ppc": PPC_MEMBER_GAINS, "proposed_tuned": PROPOSED_TUNED_MEMBER_GAINS}[law][n] == chosen
+    p = make_controller(law, nominal=family_arm(n)).params
     other = ArmParams(lengths=(0.8 / n,) * n, masses=(0.53 / n,) * n)
     carried = make_controller("proposed", nominal=family_arm(n)).params  # the same shapes as PPC's carried
     for k in ("K1", "K2"):
         assert getattr(p, k)[0] == pytest.approx(chosen[k], rel=1e-12)
         np.testing.assert_allclose(np.asarray(getattr(p, k)) / getattr(p, k)[0],
                                    np.asarray(getattr(carried, k)) / getattr(carried, k)[0], rtol=1e-12)
-    assert make_controller("ppc", nominal=other).params.K1[0] == 1280.0  # the rule's, not the member's
+    assert make_controller(law, nominal=other).params.K1[0] == 1280.0  # the rule's, not the member's
 
 
 def test_a_member_s_draws_are_known_as_the_member_and_level_0_puts_back_its_masses():
