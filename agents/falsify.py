@@ -336,7 +336,12 @@ def falsify(target: Target, box: dict[str, tuple[float, float]] | None = None, b
 
 def replay(report: dict[str, Any], run: int, case: int, accept_changed_files: bool = False) -> dict[str, Any]:
     """Re-simulate counterexample ``case`` of search ``run`` of a report: its margins now, beside the
-    recorded ones (equal to the bit on the machine and code that found it)."""
+    recorded ones (equal to the bit on the machine and code that found it).
+
+    The case is simulated in a batch of the size of the one the search found it in, of copies of
+    itself: an agent's network evaluated on 16 rows rounds differently from one row (a batched
+    matrix product's blocking follows the batch's shape, not its other rows), so a lone replay of
+    a case found in a batch of 16 differed from the record in the tenth digit."""
     t = report["target"]
     target = Target.from_args(t.get("agent"), t.get("policy"), t.get("controller"), t.get("residual_filter"),
                               accept_changed_files)
@@ -346,7 +351,10 @@ def replay(report: dict[str, Any], run: int, case: int, accept_changed_files: bo
         raise ValueError(f"blf-falsify --replay: no counterexample {run}:{case} in the report") from None
     box = {k: tuple(v) for k, v in report["space"].items()}
     sc, seed = case_scenario(ce["params"], box, report.get("duration"))
-    pol, law, _ = target.margins([sc], [seed])
+    width = int(report.get("batch", 1))
+    first = (int(ce["simulation"]) - 1) // width * width  # simulations before the case's batch
+    size = max(1, min(width, int(report.get("budget_per_search", width)) - first))
+    pol, law, _ = target.margins([sc] * size, [seed] * size)
     now = {"robustness_deg": _finite(robustness(pol[0], law[0])), "policy_margin_deg": _finite(pol[0]),
            "law_margin_deg": _finite(law[0])}
     return {"params": ce["params"], "recorded": {k: ce[k] for k in now}, "now": now,

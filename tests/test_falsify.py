@@ -130,6 +130,37 @@ def test_a_policy_built_to_fail_is_caught_and_its_counterexample_replays_to_the_
     assert out["identical"], out
 
 
+class _Batched(_Planted):
+    """The planted policy with a batched network's trait: its action moves in a low digit with the
+    number of rows it is given (as a matrix product's blocking follows the batch's shape)."""
+
+    def predict(self, obs, deterministic=True):
+        a, _ = super().predict(obs, deterministic)
+        return a + np.float32(1e-6) * np.float32(obs.shape[0] % 7), None
+
+
+def test_a_counterexample_found_in_a_batch_replays_to_the_bit_in_a_batch_of_its_size(monkeypatch):
+    # the search steps 6 cases at a time, the last batch of a 16-case budget holds 4: each
+    # counterexample replays in a batch of the size it was found in (a lone replay would not match)
+    import agents.falsify as fz
+
+    from dataclasses import replace as swap
+
+    target = _planted_target()
+    batched = _Batched.__new__(_Batched)
+    batched.__dict__.update(vars(target.model))
+    target = swap(target, model=batched)
+    report = falsify(target, budget=16, duration=DURATION, batch=6)
+    ces = report["runs"][0]["counterexamples"]
+    assert ces
+    monkeypatch.setattr(fz.Target, "from_args", classmethod(lambda cls, *a, **k: target))
+    for k in range(len(ces)):
+        out = replay(json.loads(json.dumps(report)), 0, k)
+        assert out["identical"], (k, out)
+    lone = dict(json.loads(json.dumps(report)), batch=1)
+    assert not all(replay(lone, 0, k)["identical"] for k in range(len(ces)))  # the batch's size matters
+
+
 def test_the_command_writes_its_report(tmp_path):
     from agents.falsify import main
 
