@@ -131,12 +131,15 @@ on the paper's 3-link arm; on an arm of another number of links they are carried
 docs/family.md's rule unless K1 and K2 are given."""
 
 
-PROPOSED_TUNED_MEMBER_GAINS: dict[int, dict[str, float]] = {}
+PROPOSED_TUNED_MEMBER_GAINS: dict[int, dict[str, float]] = {  # chosen by the searches named below
+    2: {"K1": 1280.0, "K2": 12.390671665762405},
+    4: {"K1": 1280.0, "K2": 26.942644011767488}}
 """The tuned law's gains on the task family's other members (docs/family.md, "Gains"), chosen per
 member by the search that chose :data:`PROPOSED_TUNED` (``docs/gains/family/run.sh proposed``: the
 same 40-point grid carried, on the member's presets and training-suite seeds 0-7 only, under the same
 torque budget; docs/gains/family/proposed_n<N>), each the first entry of a vector of the carried
-shape. A member without an entry takes :data:`PROPOSED_TUNED` carried by the rule."""
+shape. A member without an entry (its search not run yet) takes :data:`PROPOSED_TUNED` carried by
+the rule."""
 
 
 def proposed_tuned(**kwargs: Any) -> Controller:

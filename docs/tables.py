@@ -1093,15 +1093,17 @@ def family_headline_table() -> str:
     return "\n".join(out) + "\n"
 
 
-def family_ppc_gains_table() -> str:
-    """PPC's gain search on each member of the task family (docs/gains/family/ppc_n<N>/gains.json,
-    ``python -m baselines.gains ppc --n-links N``): the carried gains' point and the chosen one, with
-    their scores and efforts on the member's selection episodes."""
+def family_ppc_gains_table(law: str = "ppc") -> str:
+    """A law's gain search on each member of the task family (docs/gains/family/<law>_n<N>/gains.json,
+    ``python -m baselines.gains LAW --n-links N``; PPC's, or the proposed law's for the tuned law,
+    whose paper-arm gains are PPC's): the carried gains' point and the chosen one, with their scores
+    and efforts on the member's selection episodes."""
     import json
 
     out = ["| n | carried K1, K2 (first joint) | carried: score (effort), failed on | chosen K1, K2 | chosen: score (effort) |",
            "|---|---|---|---|---|"]
-    for path in sorted((DOCS / "gains" / "family").glob("ppc_n*/gains.json"), key=lambda p: int(p.parent.name[5:])):
+    for path in sorted((DOCS / "gains" / "family").glob(f"{law}_n*/gains.json"),
+                       key=lambda p: int(p.parent.name.rsplit("_n", 1)[1])):
         d = json.loads(path.read_text())
         n = d["n_links"]
         rows = d["rows"]
@@ -1117,7 +1119,8 @@ def family_ppc_gains_table() -> str:
 
 
 def _carried_ppc_k2(n: int) -> float:
-    """The first entry of PPC's K2 carried to the member of ``n`` links by the rule alone."""
+    """The first entry of PPC's K2 (and the tuned law's, the same vector) carried to the member of
+    ``n`` links by the rule alone."""
     from baselines.params import velocity_gain
     from blf_gym.model.family import family_arm
 
@@ -1456,6 +1459,7 @@ BLOCKS: dict[str, dict[str, Callable[[], str]]] = {
     "docs/family.md": {"family-members": family_members_table, "family-law": family_law_table,
                        "family-cost": family_cost_table, "family-protocol": family_protocol_table,
                        "family-ppc-gains": family_ppc_gains_table,
+                       "family-tuned-gains": lambda: family_ppc_gains_table("proposed"),
                        "family-headline": family_headline_table},
     "docs/sweeps.md": {"sweep-keys": sweep_keys_table, "scaling": sweep_scaling_table},
     "docs/plain_search.md": {"searches": plain_search_table},
