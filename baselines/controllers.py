@@ -133,7 +133,9 @@ docs/family.md's rule unless K1 and K2 are given."""
 
 PROPOSED_TUNED_MEMBER_GAINS: dict[int, dict[str, float]] = {  # chosen by the searches named below
     2: {"K1": 1280.0, "K2": 12.390671665762405},
-    4: {"K1": 1280.0, "K2": 26.942644011767488}}
+    4: {"K1": 1280.0, "K2": 26.942644011767488},
+    5: {"K1": 1280.0, "K2": 22.128259433048658},
+    6: {"K1": 2560.0, "K2": 20.503601833576987}}
 """The tuned law's gains on the task family's other members (docs/family.md, "Gains"), chosen per
 member by the search that chose :data:`PROPOSED_TUNED` (``docs/gains/family/run.sh proposed``: the
 same 40-point grid carried, on the member's presets and training-suite seeds 0-7 only, under the same

@@ -109,5 +109,6 @@ def ppc(**kwargs: Any) -> Controller:
     arguments override :class:`baselines.controllers.ControllerGains` (K1 is the transformed
     error's rate, 1/s). On a member of the task family its gains are the member's
     (:data:`PPC_MEMBER_GAINS`)."""
-    return Controller("ppc", ppc_output, controller_gains(kwargs, member_defaults(kwargs.get("nominal"), PPC_MEMBER_GAINS, PPC_GAINS)),
+    defaults = member_defaults(kwargs.get("nominal"), PPC_MEMBER_GAINS, PPC_GAINS)
+    return Controller("ppc", ppc_output, controller_gains(kwargs, defaults),
                       outputs={"u_law": "n", "z1": "n", "z2_hat": "n", "epsilon": "n"})
