@@ -135,13 +135,13 @@ PROPOSED_TUNED_MEMBER_GAINS: dict[int, dict[str, float]] = {  # chosen by the se
     2: {"K1": 1280.0, "K2": 12.390671665762405},
     4: {"K1": 1280.0, "K2": 26.942644011767488},
     5: {"K1": 1280.0, "K2": 22.128259433048658},
-    6: {"K1": 2560.0, "K2": 20.503601833576987}}
+    6: {"K1": 2560.0, "K2": 20.503601833576987},
+    7: {"K1": 2560.0, "K2": 19.092879177475517}}
 """The tuned law's gains on the task family's other members (docs/family.md, "Gains"), chosen per
 member by the search that chose :data:`PROPOSED_TUNED` (``docs/gains/family/run.sh proposed``: the
 same 40-point grid carried, on the member's presets and training-suite seeds 0-7 only, under the same
 torque budget; docs/gains/family/proposed_n<N>), each the first entry of a vector of the carried
-shape. A member without an entry (its search not run yet) takes :data:`PROPOSED_TUNED` carried by
-the rule."""
+shape. Another arm takes :data:`PROPOSED_TUNED` carried by the rule."""
 
 
 def proposed_tuned(**kwargs: Any) -> Controller:
