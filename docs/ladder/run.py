@@ -92,12 +92,12 @@ def _train(r: Run, out: Path) -> str:
     cmd = ["nice", "-n", "5", sys.executable, "-m", "agents.train", "--algo", r.algo, "--mode", r.mode,
            "--scenario", "randomized", "--seed", str(r.seed), "--config", r.config, "--timesteps", str(r.steps),
            "--out", str(run), "--name", r.name, "--no-progress"]
+    # the same --set on a resumed run: blf-train checks the file and overrides against the run's config
+    cmd += ["--set", f"env.level={r.level}"]
+    for kv in r.sets:
+        cmd += ["--set", kv]
     if _meta(run) is not None or (run / "checkpoints").is_dir():
         cmd.append("--resume")
-    else:
-        cmd += ["--set", f"env.level={r.level}"]
-        for kv in r.sets:
-            cmd += ["--set", kv]
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     with open(out / f"{r.name}.log", "a") as log:
