@@ -249,63 +249,77 @@ def _step_bookkeeping(j, k, x, ref, bnd, satf, terminate, st, n):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, ang, sn, cs, ex, ev, n,
-                one_lane):
-    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.jit.vmath`:
-    sin and cos, acos, atan2, exp), for one lane: the reference and the bounds at ``ts``, the
-    measurement y, the cos and sin of the plant's and the nominal model's link angles, and the
-    friction torques. It runs in a loop of its own, so that the rest of the stage, in
-    :func:`advance`, vectorises across lanes.
-
-    Compiled for one lane, the 2n + 1 angles (the plant's links, the measured links, the
-    reference's) go through one loop of ``sincos`` and the n + 1 exponents (the friction's, the
-    bounds') through one loop of ``exp``, padded to whole vectors (``ang``/``sn``/``cs`` and
-    ``ex``/``ev``), so that the single arm's calls vectorise too. In a block the lanes vectorise
-    instead. Either way every number is the same function of the same argument, so a block's arms
-    and single arms agree bit for bit."""
+def _measure(q, nz, y, n):
+    """The measurement y = q + nz of a stage, for one lane; True when it equals q (no noise)."""
     same = True
     for i in range(n):
         y[i] = q[i] + nz[i]
         if y[i] != q[i]:
             same = False
-    if one_lane:
-        a_pl, a_me, a_rf, e_fr, e_bd = at(_A_PLANT, n), at(_A_MEAS, n), at(_A_REF, n), at(_E_FRIC, n), at(_E_BOUNDS, n)
-        c0, s0 = at(_T_COS, n), at(_T_SIN, n)
-        th = 0.0
-        thy = 0.0
-        for j in range(n):
-            th += q[j]
-            thy += y[j]
-            ang[a_pl + j] = th
-            ang[a_me + j] = thy
-        ang[a_rf] = reference_angle(ts, rp)
-        for i in range(at(_A_END, n), ang.shape[0]):
-            ang[i] = 0.0
-        for i in range(ang.shape[0]):
-            sn[i], cs[i] = vmath.sincos(ang[i])
-        for j in range(n):
-            trig[c0 + j] = cs[a_pl + j]
-            trig[s0 + j] = sn[a_pl + j]
-            ntrig[c0 + j] = cs[a_me + j]
-            ntrig[s0 + j] = sn[a_me + j]
-        reference_from(sn[a_rf], cs[a_rf], rp, arm, ref)
-        for i in range(n):
-            ex[e_fr + i] = friction_exponent(qd[i], tail[_PSI])
-        ex[e_bd] = bounds_exponent(ts, bp)
-        for i in range(at(_E_END, n), ex.shape[0]):
-            ex[i] = 0.0
-        for i in range(ex.shape[0]):
-            ev[i] = vmath.exp(ex[i])
-        bounds_from(ev[e_bd], bp, bnd)
-        for i in range(n):
-            fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[e_fr + i])
-    else:
-        reference_into(ts, rp, arm, ref)
-        bounds_into(ts, bp, bnd)
-        abs_trig_into(q, trig)
-        abs_trig_into(y, ntrig)  # without noise y == q, and these are the same numbers
-        for i in range(n):
-            fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
+    return same
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _stage_trig(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, ang, sn, cs, ex, ev, n):
+    """The part of a stage evaluation that calls the elementary functions (:mod:`blf_gym.jit.vmath`:
+    sin and cos, acos, atan2, exp), for a one-lane build: the measurement y, the reference and the
+    bounds at ``ts``, the cos and sin of the plant's and the nominal model's link angles, and the
+    friction torques; True when y == q. It runs in a loop of its own, so that the rest of the stage,
+    in :func:`advance`, vectorises.
+
+    The 2n + 1 angles (the plant's links, the measured links, the reference's) go through one loop
+    of ``sincos`` and the n + 1 exponents (the friction's, the bounds') through one loop of ``exp``,
+    padded to whole vectors (``ang``/``sn``/``cs`` and ``ex``/``ev``), so that the single arm's calls
+    vectorise. A block's build calls :func:`_stage_trig_lane` instead, whose loop over the lanes
+    vectorises; every number is the same function of the same argument either way, so a block's
+    arms and single arms agree bit for bit. (Two functions, not one with a flag: the build's
+    ``LN == 1`` test is pruned before numba inlines, so a build copies only the one it runs, and
+    numba's inlining copies a function's whole IR once per block of it.)"""
+    same = _measure(q, nz, y, n)
+    a_pl, a_me, a_rf, e_fr, e_bd = at(_A_PLANT, n), at(_A_MEAS, n), at(_A_REF, n), at(_E_FRIC, n), at(_E_BOUNDS, n)
+    c0, s0 = at(_T_COS, n), at(_T_SIN, n)
+    th = 0.0
+    thy = 0.0
+    for j in range(n):
+        th += q[j]
+        thy += y[j]
+        ang[a_pl + j] = th
+        ang[a_me + j] = thy
+    ang[a_rf] = reference_angle(ts, rp)
+    for i in range(at(_A_END, n), ang.shape[0]):
+        ang[i] = 0.0
+    for i in range(ang.shape[0]):
+        sn[i], cs[i] = vmath.sincos(ang[i])
+    for j in range(n):
+        trig[c0 + j] = cs[a_pl + j]
+        trig[s0 + j] = sn[a_pl + j]
+        ntrig[c0 + j] = cs[a_me + j]
+        ntrig[s0 + j] = sn[a_me + j]
+    reference_from(sn[a_rf], cs[a_rf], rp, arm, ref)
+    for i in range(n):
+        ex[e_fr + i] = friction_exponent(qd[i], tail[_PSI])
+    ex[e_bd] = bounds_exponent(ts, bp)
+    for i in range(at(_E_END, n), ex.shape[0]):
+        ex[i] = 0.0
+    for i in range(ex.shape[0]):
+        ev[i] = vmath.exp(ex[i])
+    bounds_from(ev[e_bd], bp, bnd)
+    for i in range(n):
+        fr[i] = friction_from(qd[i], tail[_VISC], tail[_COUL], tail[_PSI] * qd[i], ev[e_fr + i])
+    return same
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _stage_trig_lane(ts, q, qd, nz, y, rp, arm, tail, bp, ref, bnd, trig, ntrig, fr, n):
+    """:func:`_stage_trig` for one lane of a block (a build of several lanes): the same numbers,
+    each elementary function called once per argument, in the loop over the block's lanes."""
+    same = _measure(q, nz, y, n)
+    reference_into(ts, rp, arm, ref)
+    bounds_into(ts, bp, bnd)
+    abs_trig_into(q, trig)
+    abs_trig_into(y, ntrig)  # without noise y == q, and these are the same numbers
+    for i in range(n):
+        fr[i] = friction(qd[i], tail[_VISC], tail[_COUL], tail[_PSI])
     return same
 
 
@@ -364,11 +378,12 @@ def advance(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains,
 
     A block is loaded (:func:`_load_block`), stepped, and stored back
     (:func:`_store_block`). One step is: its lanes' inputs (:func:`_begin_step`),
-    the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` and the rest of the right-hand
+    the stage evaluations (:func:`_stage_input`, :func:`_stage_trig` or :func:`_stage_trig_lane` and the rest of the right-hand
     side, in two loops over the lanes), the step's bookkeeping at its start
     (:func:`_sample`: violations, the reward's sums, the record), the update
     (:func:`_ode3_update`), the instability check (:func:`_check_stability`) and the commit
-    (:func:`_commit`). The parts are copied into the build's module with it and inlined. Every lane
+    (:func:`_commit`). The parts are copied into the build's module with it and inlined (the load and
+    the store, which run once a call, are called: :data:`ONCE_A_CALL`). Every lane
     computes every stage the block needs; a lane's own control
     flow (stopped, noisy, first-same-as-last, instability checks) only decides what it keeps, so
     each arm's numbers are those it would get alone.
@@ -452,17 +467,25 @@ def advance(X, ksteps, n_steps, dt, sps, plant, nominal, rp, bp, lg, og, fgains,
                         _lane(work, _L_ts, 1, b)[0] = (t if stage == 0 else (t + 0.5 * dt if stage == 1 else
                                                     (t + 0.75 * dt if stage == 2 else (k + 1) * dt)))
                     for b in range(LN):
-                        same_y = _stage_trig(_lane(work, _L_ts, 1, b)[0], _lane(work, _L_xs + at(_S_Q, n), n, b),
-                                    _lane(work, _L_xs + at(_S_QD, n), n, b),
-                                    _lane(work, _L_nz, n, b), _lane(work, _L_y, n, b),
-                                    _lane(work, _L_rp, _NRP, b), _lane(work, _L_plant + at(_P_ARM, n), at(_SIZE_ARM, n), b),
-                                    _lane(work, _L_plant + at(_P_TAIL, n), at(_SIZE_TAIL, n), b), _lane(work, _L_bp, _NBP, b),
-                                    _lane(work, _L_ref, _NREF, b), _lane(work, _L_bnd, BOUND_LEN, b),
-                                    _lane(work, _L_pw + at(_KW_TRIG, n), at(_SIZE_TRIG, n), b),
-                                    _lane(work, _L_nom + at(_NOM_TRIG, n), at(_SIZE_TRIG, n), b),
-                                    _lane(work, _L_fr, n, b), _lane(work, _L_ang, _NANG, b), _lane(work, _L_sn, _NANG, b),
-                                    _lane(work, _L_cs, _NANG, b), _lane(work, _L_ex, _NEX, b), _lane(work, _L_ev, _NEX, b),
-                                    n, LN == 1)
+                        ts_b = _lane(work, _L_ts, 1, b)[0]
+                        q_b = _lane(work, _L_xs + at(_S_Q, n), n, b)
+                        qd_b = _lane(work, _L_xs + at(_S_QD, n), n, b)
+                        nz_b, y_b = _lane(work, _L_nz, n, b), _lane(work, _L_y, n, b)
+                        rp_b, bp_b = _lane(work, _L_rp, _NRP, b), _lane(work, _L_bp, _NBP, b)
+                        arm_b = _lane(work, _L_plant + at(_P_ARM, n), at(_SIZE_ARM, n), b)
+                        tail_b = _lane(work, _L_plant + at(_P_TAIL, n), at(_SIZE_TAIL, n), b)
+                        ref_b, bnd_b = _lane(work, _L_ref, _NREF, b), _lane(work, _L_bnd, BOUND_LEN, b)
+                        trig_b = _lane(work, _L_pw + at(_KW_TRIG, n), at(_SIZE_TRIG, n), b)
+                        ntrig_b = _lane(work, _L_nom + at(_NOM_TRIG, n), at(_SIZE_TRIG, n), b)
+                        fr_b = _lane(work, _L_fr, n, b)
+                        if LN == 1:  # a compile-time constant: the build inlines one of the two
+                            same_y = _stage_trig(ts_b, q_b, qd_b, nz_b, y_b, rp_b, arm_b, tail_b, bp_b, ref_b, bnd_b,
+                                                 trig_b, ntrig_b, fr_b, _lane(work, _L_ang, _NANG, b),
+                                                 _lane(work, _L_sn, _NANG, b), _lane(work, _L_cs, _NANG, b),
+                                                 _lane(work, _L_ex, _NEX, b), _lane(work, _L_ev, _NEX, b), n)
+                        else:
+                            same_y = _stage_trig_lane(ts_b, q_b, qd_b, nz_b, y_b, rp_b, arm_b, tail_b, bp_b, ref_b,
+                                                      bnd_b, trig_b, ntrig_b, fr_b, n)
                         _lane(work, _L_flags, _N_FLAGS, b)[_F_SAME_Y] = 1.0 if same_y else 0.0
                     for b in range(LN):
                         # the rest of the evaluation at (tb, xs) into dx, written here rather than
@@ -812,4 +835,10 @@ def _store_block(work, arm0, N, dt, terminate, X, ksteps, nominal, status, last,
 
 
 TEMPLATES = (_load_block, _begin_step, _check_stability, _sample, _commit, _store_block, advance)
-"""The functions a build copies, in order: the parts (inlined into the loop), then the loop."""
+"""The functions a build copies, in order: the parts (inlined into the loop, or called: :data:`ONCE_A_CALL`),
+then the loop."""
+
+ONCE_A_CALL = (_load_block, _store_block)
+"""The parts a build calls instead of inlining: they run once per block and call, not once a step, so a
+call costs nothing measurable, while inlining them cost a third of a build's compile time (numba copies
+an inlined function's whole IR, once per block of it: benchmarks/compile_time.py)."""
