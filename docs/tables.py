@@ -1068,7 +1068,8 @@ def family_headline_table() -> str:
     of the per-episode score against the law with its 95 % interval, on the training suite's held-out
     episodes and on the stress suite, and the share of episodes failed, for PPC, the best residual
     learner and the best plain learner (each the best of its kind by its training-suite IQM, never by
-    the stress suite), with the law's own failure shares."""
+    the stress suite), with the law's own failure shares; the controllers PPC and the tuned law, each
+    with its gains searched on the member ("-" where a member has no run of it)."""
     rows = _load("family", "score.json")["rows"]
 
     def cell(r: dict | None) -> str:
@@ -1078,7 +1079,8 @@ def family_headline_table() -> str:
         who = "" if r["kind"] == "baseline" else f"{r['policy']}, {seeds} seed{'s' if seeds != 1 else ''}: "
         return f"{who}{r['iqm']:.3g} [{r['ci95'][0]:.3g}, {r['ci95'][1]:.3g}] ({r['failure_rate']:.2f})"
 
-    out = ["| n | group | the law: failed | PPC | best residual learner | best plain learner |", "|---|---|---|---|---|---|"]
+    out = ["| n | group | the law: failed | PPC | the tuned law | best residual learner | best plain learner |",
+           "|---|---|---|---|---|---|---|"]
     for n in sorted({r["n"] for r in rows}):
         best = {}
         for kind in ("residual", "plain"):
@@ -1088,8 +1090,9 @@ def family_headline_table() -> str:
             at = {r["policy"]: r for r in rows if r["n"] == n and r["group"] == group}
             law = at.get("proposed")
             law_failed = "-" if law is None else f"{law['failure_rate']:.2f}"
-            out.append(f"| {n} | {label} | {law_failed} | "
-                       f"{cell(at.get('ppc'))} | {cell(at.get(best['residual']))} | {cell(at.get(best['plain']))} |")
+            control = [cell(at[c]) if c in at else "-" for c in ("ppc", "proposed_tuned")]
+            out.append(f"| {n} | {label} | {law_failed} | {' | '.join(control)} | "
+                       f"{cell(at.get(best['residual']))} | {cell(at.get(best['plain']))} |")
     return "\n".join(out) + "\n"
 
 
