@@ -9,7 +9,10 @@
 # its training-suite IQM is the higher of the two hand-back rules (docs/fallback/protocol*); no
 # falsifier result chose it.
 #
-#   docs/fallback/retrain.sh RUNS [OUT]        # OUT default docs/fallback/retrained
+#   docs/fallback/retrain.sh RUNS [OUT [STEP...]]   # OUT default docs/fallback/retrained
+#
+# STEPs, in this order by default: train (the five retrained seeds), before (the five trained without
+# the hand-back, deployed through it: OUT/protocol_before), retrained (OUT/protocol).
 #
 # Resumable: a finished run is skipped, an interrupted one resumes from its newest checkpoint, and a
 # finished protocol (its manifest complete) is not run again. The five seeds
@@ -22,12 +25,15 @@ if [ "$#" -lt 1 ]; then
 fi
 runs=$1
 out=${2:-docs/fallback/retrained}
+shift $(( $# < 2 ? $# : 2 ))
+steps=" ${*:-train before retrained} "
 spec="barrier:handback=0.0033,lookahead=0.35,predict=0.5"
 finished() {  # 0 when $1/metadata.json records a completed run
     python -c "import json, sys; m = json.load(open(sys.argv[1])); sys.exit(0 if m.get('completed') else 1)" \
         "$1/metadata.json" 2>/dev/null
 }
 for s in 0 1 2 3 4; do
+    [[ $steps == *" train "* ]] || break
     run=$runs/ppo_residual_predict_s$s
     if finished "$run"; then echo "seed $s: trained already"; continue; fi
     resume=()
@@ -52,12 +58,21 @@ for s in 1 2 3 4; do
         cp -r "$kept" "$runs/"
     fi
 done
-agents=()
-for s in 0 1 2 3 4; do agents+=("$runs/ppo_residual_predict_s$s"); done
-for s in 0 1 2 3 4; do agents+=("$runs/ppo_residual_certified_s$s"); done
-if ! python -c "import json, sys; sys.exit(0 if json.load(open(sys.argv[1])).get('complete') else 1)" \
-        "$out/protocol/manifest.json" 2>/dev/null; then
-    blf-eval --controllers proposed --agents "${agents[@]}" --residual-filter "$spec" --out "$out/protocol" \
-        --no-plots --no-progress --jobs 1
-fi
-python -m agents.report "$out/protocol/results.json" --out "$out/protocol/seeds_table.md"
+# each set on the protocol through the hand-back, in a folder of its own (so either can be rerun
+# alone): protocol (retrained), protocol_before (trained without it); a finished one is kept
+evaluate() {  # evaluate OUT AGENT...
+    local dir=$1
+    shift
+    if ! python -c "import json, sys; sys.exit(0 if json.load(open(sys.argv[1])).get('complete') else 1)" \
+            "$dir/manifest.json" 2>/dev/null; then
+        blf-eval --controllers proposed --agents "$@" --residual-filter "$spec" --out "$dir" --no-plots --no-progress \
+            --jobs 1
+    fi
+    python -m agents.report "$dir/results.json" --out "$dir/seeds_table.md"
+}
+before=()
+for s in 0 1 2 3 4; do before+=("$runs/ppo_residual_certified_s$s"); done
+[[ $steps != *" before "* ]] || evaluate "$out/protocol_before" "${before[@]}"
+retrained=()
+for s in 0 1 2 3 4; do retrained+=("$runs/ppo_residual_predict_s$s"); done
+[[ $steps != *" retrained "* ]] || evaluate "$out/protocol" "${retrained[@]}"
