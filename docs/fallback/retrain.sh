@@ -44,13 +44,7 @@ for s in 0 1 2 3 4; do
 done
 # the five trained without the hand-back: seed 0 is the shipped agent, seeds 1-4 are kept in
 # docs/protocol_certified/runs (weights shelved: fetched here when absent)
-s0=$runs/ppo_residual_certified_s0
-if [ ! -f "$s0/model.zip" ]; then
-    mkdir -p "$s0"
-    cp agents/pretrained/ppo_residual_certified/model.zip agents/pretrained/ppo_residual_certified/vecnormalize.pkl "$s0/"
-    python -c "import json, sys; m = json.load(open(sys.argv[1])); m['name'] = 'ppo_residual_certified_s0'; json.dump(m, open(sys.argv[2], 'w'), indent=2)" \
-        agents/pretrained/ppo_residual_certified/metadata.json "$s0/metadata.json"
-fi
+bash "$(dirname "$0")/../protocol_certified/seed0.sh" "$runs"
 for s in 1 2 3 4; do
     kept=docs/protocol_certified/runs/ppo_residual_certified_s$s
     if [ ! -f "$runs/ppo_residual_certified_s$s/model.zip" ]; then

@@ -19,15 +19,7 @@ if [ "$#" -lt 1 ]; then
 fi
 runs=$1
 out=${2:-docs/protocol_certified_handback}
-s0=$runs/ppo_residual_certified_s0
-if [ ! -f "$s0/model.zip" ]; then
-    mkdir -p "$s0"
-    cp agents/pretrained/ppo_residual_certified/model.zip agents/pretrained/ppo_residual_certified/vecnormalize.pkl "$s0/"
-    # named like seeds 1-4 and with the filter they were trained with, so that --residual-filter
-    # names all five alike (the shipped metadata deploys it with the hand-back)
-    python -c "import json, sys; m = json.load(open(sys.argv[1])); m['name'] = 'ppo_residual_certified_s0'; m['env_kwargs']['residual_filter'] = 'barrier'; json.dump(m, open(sys.argv[2], 'w'), indent=2)" \
-        agents/pretrained/ppo_residual_certified/metadata.json "$s0/metadata.json"
-fi
+bash "$(dirname "$0")/../protocol_certified/seed0.sh" "$runs"
 agents=()
 for s in 0 1 2 3 4; do agents+=("$runs/ppo_residual_certified_s$s"); done
 for spec in barrier barrier:handback=0.0033; do
