@@ -239,6 +239,11 @@ def _template_imports() -> list[str]:
     return lines + rows + [row.rstrip(", ") + ")"]
 
 
+_INLINED = '@njit(cache=True, error_model="numpy", inline="always")'
+_CALLED = '@njit(cache=True, error_model="numpy", nogil=True, _nrt=False)'
+"""A build's two decorators: a part inlined into the loop; the loop, and a part it calls."""
+
+
 def build_source(conn: Connection, lanes: int) -> str:
     """The source of one build's module (:mod:`blf_gym.jit.codegen`): the templates' helpers
     imported, the build's constants, the lane view, the plug-ins' glue and the reward's per-sample sum
@@ -261,11 +266,8 @@ def build_source(conn: Connection, lanes: int) -> str:
     for fn in parts:
         # the block's load and store run once a call, not once a step: called, not inlined (numba's
         # inlining copies a function's IR, and each of these is a large one)
-        deco = ('@njit(cache=True, error_model="numpy", nogil=True, _nrt=False)' if fn in ONCE_A_CALL
-                else '@njit(cache=True, error_model="numpy", inline="always")')
-        lines += ["", "", deco, inspect.getsource(fn).rstrip()]
-    lines += ["", "", '@njit(cache=True, error_model="numpy", nogil=True, _nrt=False)',
-              inspect.getsource(templates.advance).rstrip(), ""]
+        lines += ["", "", _CALLED if fn in ONCE_A_CALL else _INLINED, inspect.getsource(fn).rstrip()]
+    lines += ["", "", _CALLED, inspect.getsource(templates.advance).rstrip(), ""]
     return "\n".join(lines)
 
 
