@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The certified residual retrained through the predictive hand-back (docs/certificate.md, "Retrained
-# through the hand-back"): the certified configuration (agents/configs/ppo_residual_certified.yaml)
+# The certified residual retrained through the predictive hand-back (docs/certificate.md, "Judged by
+# the falsifier"): the certified configuration (agents/configs/ppo_residual_certified.yaml)
 # with the filter it is deployed with, barrier:handback=0.0033,lookahead=0.35,predict=0.5, seeds 0-4
 # (the certified agent's own five, fixed before its first training), 1M agent steps each; then the
 # five retrained seeds and the five trained without the hand-back, both deployed through it, on the
@@ -20,7 +20,7 @@
 # docs/protocol_certified/runs (seeds 1-4, their weights fetched from the history when absent).
 set -euo pipefail
 if [ "$#" -lt 1 ]; then
-    echo "usage: $0 RUNS [OUT]" >&2
+    echo "usage: $0 RUNS [OUT [STEP...]]   (STEPs: train before retrained)" >&2
     exit 2
 fi
 runs=$1
@@ -28,14 +28,14 @@ out=${2:-docs/fallback/retrained}
 shift $(( $# < 2 ? $# : 2 ))
 steps=" ${*:-train before retrained} "
 spec="barrier:handback=0.0033,lookahead=0.35,predict=0.5"
-finished() {  # 0 when $1/metadata.json records a completed run
-    python -c "import json, sys; m = json.load(open(sys.argv[1])); sys.exit(0 if m.get('completed') else 1)" \
-        "$1/metadata.json" 2>/dev/null
+flag() {  # 0 when the JSON file $1 has a true field $2 (a run's "completed", a manifest's "complete")
+    python -c "import json, sys; sys.exit(0 if json.load(open(sys.argv[1])).get(sys.argv[2]) else 1)" "$1" "$2" \
+        2>/dev/null
 }
 for s in 0 1 2 3 4; do
     [[ $steps == *" train "* ]] || break
     run=$runs/ppo_residual_predict_s$s
-    if finished "$run"; then echo "seed $s: trained already"; continue; fi
+    if flag "$run/metadata.json" completed; then echo "seed $s: trained already"; continue; fi
     resume=()
     if [ -f "$run/metadata.json" ] || [ -d "$run/checkpoints" ]; then resume=(--resume); fi
     blf-train --algo ppo --mode residual --scenario randomized --timesteps 1000000 --seed "$s" \
@@ -57,8 +57,7 @@ done
 evaluate() {  # evaluate OUT AGENT...
     local dir=$1
     shift
-    if ! python -c "import json, sys; sys.exit(0 if json.load(open(sys.argv[1])).get('complete') else 1)" \
-            "$dir/manifest.json" 2>/dev/null; then
+    if ! flag "$dir/manifest.json" complete; then
         blf-eval --controllers proposed --agents "$@" --residual-filter "$spec" --out "$dir" --no-plots --no-progress \
             --jobs 1
     fi
